@@ -1,0 +1,181 @@
+"""``CalibrationOptimizer``: nerfstudio's ``CameraOptimizer`` with MOISST's rig parameterisation (paper eq. 10-12).
+
+Instead of one free pose correction per training frame, it holds one SE(3) correction and one time offset per
+non-reference sensor (``moisst_ns.rig.calibration.RigCalibration``) and regenerates every training ray from
+``T_r(t + delta_i) @ ref_T_i``. Being a ``CameraOptimizer``, nerfstudio's training viewer draws calibrated frusta
+and ``ns-export cameras`` writes calibrated per-frame poses without further glue.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Literal, Optional, Type, Union
+
+import numpy as np
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor
+
+from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.cameras.rays import RayBundle
+
+from moisst_ns.rig.calibration import RigCalibration, RigData
+from moisst_ns.rig.geometry import pose_to_xyz_rpy
+
+OPENCV_TO_OPENGL = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+
+
+@dataclass
+class CalibrationOptimizerConfig(CameraOptimizerConfig):
+    """Rig calibration: one extrinsic correction and one time offset per non-reference sensor."""
+
+    _target: Type = field(default_factory=lambda: CalibrationOptimizer)
+    mode: Literal["off", "SO3xR3", "SE3"] = "SO3xR3"
+    """Kept for nerfstudio compatibility; ``off`` freezes the calibration at the priors."""
+    optimize_extrinsics: bool = True
+    """Optimise the extrinsics (paper Table I / V: spatial)."""
+    optimize_time_offsets: bool = True
+    """Optimise the time offsets (paper Table II / V: temporal)."""
+    trans_l2_penalty: float = 0.0
+    """L2 penalty on the translation corrections (metres); the paper uses none."""
+    rot_l2_penalty: float = 0.0
+    """L2 penalty on the rotation corrections (radians); the paper uses none."""
+    max_translation: float = 2.0
+    """Bound on each axis of the translation correction, metres (<= 0: unbounded)."""
+    max_rotation_deg: float = 30.0
+    """Bound on the rotation correction's angle, degrees (<= 0: unbounded)."""
+    max_time_offset: float = 0.3
+    """Bound on the time-offset correction, seconds (<= 0: unbounded)."""
+
+
+class CalibrationOptimizer(CameraOptimizer):
+    """Rig-level pose optimiser. ``rig`` may be None only while nerfacto builds its default (then it is inert)."""
+
+    config: CalibrationOptimizerConfig
+
+    def __init__(
+        self,
+        config: CalibrationOptimizerConfig,
+        num_cameras: int,
+        device: Union[torch.device, str],
+        rig: Optional[RigData] = None,
+        **kwargs,
+    ) -> None:
+        torch.nn.Module.__init__(self)
+        self.config = config
+        self.num_cameras = num_cameras
+        self.device = device
+        self.non_trainable_camera_indices = None
+        self.rig: Optional[RigCalibration] = None
+        if rig is None:
+            return
+        self.rig = RigCalibration(rig)
+        frame_sensor = torch.as_tensor(rig.extra["frame_sensor_index"], dtype=torch.long)
+        if frame_sensor.shape[0] != num_cameras:
+            raise ValueError(f"rig has {frame_sensor.shape[0]} camera frames, the dataset {num_cameras}")
+        self.register_buffer("frame_sensor", frame_sensor, persistent=False)
+        self.register_buffer("frame_stamps", torch.as_tensor(rig.extra["frame_stamps"], dtype=torch.float64), persistent=False)
+        self.register_buffer("world_center", torch.as_tensor(rig.extra["world_center"], dtype=torch.float64), persistent=False)
+        self.world_scale = float(rig.extra["world_scale"])
+        with torch.no_grad():
+            self.register_buffer("prior_c2w", self.frame_c2w(torch.arange(num_cameras), prior=True), persistent=False)
+        self.set_trainable(self.config.mode != "off")
+
+    # --- parameter handling -------------------------------------------------------------------------------------
+
+    def set_trainable(self, enabled: bool) -> None:
+        """Freeze or release the calibration (used by the warm-up schedule)."""
+        if self.rig is None:
+            return
+        self.rig.rotvec.requires_grad_(enabled and self.config.optimize_extrinsics)
+        self.rig.translation.requires_grad_(enabled and self.config.optimize_extrinsics)
+        self.rig.time_offset.requires_grad_(enabled and self.config.optimize_time_offsets)
+
+    def project(self) -> None:
+        """Keep the corrections inside their bounds (call after every optimiser step)."""
+        if self.rig is not None:
+            self.rig.clamp_(self.config.max_translation, np.deg2rad(self.config.max_rotation_deg), self.config.max_time_offset)
+
+    # --- poses --------------------------------------------------------------------------------------------------
+
+    def to_model_frame(self, world_T_sensor: Float[Tensor, "*batch 4 4"]) -> Float[Tensor, "*batch 4 4"]:
+        """Metric OpenCV ``world_T_sensor`` -> nerfstudio's normalised OpenGL camera-to-world."""
+        pose = world_T_sensor @ OPENCV_TO_OPENGL.to(world_T_sensor.device)
+        translation = self.world_scale * (pose[..., :3, 3] - self.world_center)
+        return torch.cat([torch.cat([pose[..., :3, :3], translation[..., None]], -1), pose[..., 3:, :]], -2)
+
+    def frame_c2w(self, indices: Int[Tensor, "num"], prior: bool = False) -> Float[Tensor, "num 4 4"]:
+        """Calibrated (or prior) camera-to-world of training frames, nerfstudio frame, float64 (eq. 10)."""
+        assert self.rig is not None
+        indices = indices.to(self.frame_sensor.device)
+        sensor, stamp = self.frame_sensor[indices], self.frame_stamps[indices]
+        fn = self.rig.prior_sensor_poses if prior else self.rig.sensor_poses
+        return self.to_model_frame(fn(sensor, stamp))
+
+    def forward(self, indices: Int[Tensor, "camera_indices"]) -> Float[Tensor, "camera_indices 3 4"]:
+        """Per training frame, ``prior_c2w^-1 @ calibrated_c2w`` (a 3x4 in the camera frame), as the viewer expects."""
+        if self.rig is None or indices.numel() == 0:
+            return torch.eye(4, device=indices.device)[None, :3, :4].tile(indices.shape[0], 1, 1)
+        indices = indices.reshape(-1).long()
+        delta = torch.linalg.inv(self.prior_c2w[indices.to(self.prior_c2w.device)]) @ self.frame_c2w(indices)
+        return delta[:, :3, :4].float()
+
+    def apply_to_raybundle(self, raybundle: RayBundle) -> None:
+        """Regenerate training rays from the current calibration (paper Fig. 2): exact re-posing of each ray."""
+        if self.rig is None or raybundle.camera_indices is None:
+            return
+        idx = raybundle.camera_indices.reshape(-1).long()
+        unique, inverse = torch.unique(idx, return_inverse=True)
+        calibrated = self.frame_c2w(unique)
+        prior = self.prior_c2w[unique.to(self.prior_c2w.device)]
+        rot = (calibrated[:, :3, :3] @ prior[:, :3, :3].transpose(-1, -2)).to(raybundle.directions)[inverse]
+        raybundle.origins = raybundle.origins - prior[inverse, :3, 3].to(raybundle.origins) + calibrated[inverse, :3, 3].to(raybundle.origins)
+        raybundle.directions = (rot @ raybundle.directions[..., None])[..., 0]
+
+    def apply_to_camera(self, camera: Cameras) -> Tensor:
+        """Calibrated camera-to-world (3x4) of a training camera carrying ``metadata["cam_idx"]``."""
+        if self.rig is None or camera.metadata is None or "cam_idx" not in camera.metadata:
+            return camera.camera_to_worlds
+        idx = torch.as_tensor([int(camera.metadata["cam_idx"])])
+        return self.frame_c2w(idx)[:, :3, :4].to(camera.camera_to_worlds)
+
+    # --- nerfstudio hooks ----------------------------------------------------------------------------------------
+
+    def get_loss_dict(self, loss_dict: dict) -> None:
+        if self.rig is not None and (self.config.trans_l2_penalty > 0 or self.config.rot_l2_penalty > 0):
+            loss_dict["calibration_regularizer"] = (
+                self.rig.translation.norm(dim=-1).mean() * self.config.trans_l2_penalty
+                + self.rig.rotvec.norm(dim=-1).mean() * self.config.rot_l2_penalty
+            )
+
+    def get_metrics_dict(self, metrics_dict: dict) -> None:
+        """Per-sensor estimates and, with ground truth, errors (cm, deg, ms)."""
+        if self.rig is None:
+            return
+        for name, values in self.sensor_summary().items():
+            for key, value in values.items():
+                metrics_dict[f"calib/{name}/{key}"] = value
+
+    @torch.no_grad()
+    def sensor_summary(self) -> Dict[str, Dict[str, float]]:
+        """``{sensor: {x, y, z (m), roll, pitch, yaw (deg), delta_ms, [translation_cm, rotation_deg, time_ms]}}``."""
+        assert self.rig is not None
+        xyzrpy = pose_to_xyz_rpy(self.rig.extrinsics()).cpu().numpy()
+        deltas = self.rig.time_offsets().cpu().numpy()
+        errors = self.rig.errors() or {}
+        out = {}
+        for i, name in enumerate(self.rig.data.sensor_names):
+            if i == self.rig.data.reference_index:
+                continue
+            entry = dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), map(float, xyzrpy[i])))
+            entry["delta_ms"] = float(deltas[i] * 1000.0)
+            if name in errors:
+                entry.update({f"err_{k}": v for k, v in errors[name].items()})
+            out[name] = entry
+        return out
+
+    def get_param_groups(self, param_groups: dict) -> None:
+        if self.rig is not None:
+            param_groups["calibration_extrinsics"] = [self.rig.rotvec, self.rig.translation]
+            param_groups["calibration_time"] = [self.rig.time_offset]

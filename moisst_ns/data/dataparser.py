@@ -1,0 +1,123 @@
+"""nerfstudio dataparser ``moisst-rig`` for the ``moisst-rig/1`` format (thin glue over ``moisst_ns.rig``).
+
+Camera frames become nerfstudio ``Cameras`` posed with the *priors* (eq. 2 with prior extrinsic and delta); the
+calibration optimiser regenerates every training ray from the current calibration. The world is normalised by a
+translation and a uniform scale only (no rotation), stored as ``dataparser_transform`` / ``dataparser_scale``, so
+metric results map back exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Type
+
+import numpy as np
+import torch
+
+from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, Cameras
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+
+from moisst_ns.rig.calibration import RigCalibration, RigData
+from moisst_ns.rig.format import RigFormatError, load_calibration, load_rig
+
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass
+class MoisstRigDataParserConfig(DataParserConfig):
+    """Reads a ``moisst-rig/1`` dataset (``DATASET/rig.json``)."""
+
+    _target: Type = field(default_factory=lambda: MoisstRigDataParser)
+    data: Path = Path("data/rig")
+    """Dataset folder holding rig.json."""
+    trajectory_extent: float = 0.5
+    """The reference trajectory's half extent (largest axis) is scaled to this many model units."""
+    eval_mode: Literal["every-nth", "none"] = "every-nth"
+    """Eval frames: every ``eval_every``-th camera frame (they stay in the training set too: calibration uses all
+    data), or none."""
+    eval_every: int = 10
+    """See ``eval_mode``."""
+    load_ground_truth: bool = True
+    """Read ``ground_truth.json`` beside rig.json when present, for error metrics only (never optimised)."""
+
+
+@dataclass
+class MoisstRigDataParser(DataParser):
+    """Dataparser for ``moisst-rig/1``."""
+
+    config: MoisstRigDataParserConfig
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        root = Path(self.config.data)
+        rig = load_rig(root)
+        gt_file = rig.root / "ground_truth.json"
+        truth = load_calibration(gt_file) if self.config.load_ground_truth and gt_file.is_file() else None
+        if truth is not None:
+            missing = sorted(set(rig.sensors) - set(truth.T_ref_sensor))
+            if missing or truth.reference_sensor != rig.reference_sensor:
+                raise RigFormatError(gt_file, "sensors", f"must name the rig's reference sensor and every sensor (missing: {missing})")
+        data = RigData.from_rig(rig, truth)
+
+        # Normalisation: world_model = scale * (world - center); no rotation, so extrinsics keep their axes.
+        positions = rig.trajectory_positions
+        center = 0.5 * (positions.min(0) + positions.max(0))
+        half_extent = max(float(np.abs(positions - center).max()), 1e-3)
+        scale = self.config.trajectory_extent / half_extent
+
+        camera_frames = [i for i, f in enumerate(rig.frames) if rig.sensors[f.sensor].type == "camera"]
+        if not camera_frames:
+            raise RigFormatError(rig.root / "rig.json", "frames", "no camera frames (MOISST needs at least one camera)")
+        if split != "train" and self.config.eval_mode == "every-nth":
+            camera_frames = camera_frames[:: self.config.eval_every]
+
+        frames = [rig.frames[i] for i in camera_frames]
+        sensor_idx = torch.tensor([data.sensor_names.index(f.sensor) for f in frames])
+        stamps = torch.tensor([f.timestamp - data.t0 for f in frames], dtype=torch.float64)
+        with torch.no_grad():
+            world_T_cam = RigCalibration(data).prior_sensor_poses(sensor_idx, stamps).numpy()
+        c2w = world_T_cam @ OPENCV_TO_OPENGL
+        c2w[:, :3, 3] = scale * (c2w[:, :3, 3] - center)
+
+        intr = [rig.sensors[f.sensor].intrinsics for f in frames]
+        distortion = torch.zeros(len(frames), 6)
+        for i, k in enumerate(intr):
+            distortion[i] = torch.tensor([k["k1"], k["k2"], k.get("k3", 0.0), k.get("k4", 0.0), k["p1"], k["p2"]])
+        camera_types = [CAMERA_MODEL_TO_TYPE[k["camera_model"]] for k in intr]
+        cameras = Cameras(
+            camera_to_worlds=torch.from_numpy(c2w[:, :3, :4]).float(),
+            fx=torch.tensor([k["fl_x"] for k in intr]).float()[:, None],
+            fy=torch.tensor([k["fl_y"] for k in intr]).float()[:, None],
+            cx=torch.tensor([k["cx"] for k in intr]).float()[:, None],
+            cy=torch.tensor([k["cy"] for k in intr]).float()[:, None],
+            width=torch.tensor([k["w"] for k in intr])[:, None],
+            height=torch.tensor([k["h"] for k in intr])[:, None],
+            distortion_params=distortion,
+            camera_type=torch.tensor([int(t.value) for t in camera_types])[:, None],
+            times=stamps.float()[:, None],
+            metadata={"sensor_idx": sensor_idx[:, None]},
+        )
+        transform = torch.eye(4)[:3, :]
+        # nerfstudio applies the transform, then the scale: store the translation pre-scale so that
+        # model = scale * (transform @ world) holds.
+        transform[:, 3] = torch.from_numpy(-center).float()
+        data.extra["frame_sensor_index"] = sensor_idx.numpy()
+        data.extra["frame_stamps"] = stamps.numpy()
+        data.extra["world_center"] = center
+        data.extra["world_scale"] = scale
+        return DataparserOutputs(
+            image_filenames=[rig.root / f.file_path for f in frames],
+            cameras=cameras,
+            scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
+            dataparser_transform=transform,
+            dataparser_scale=scale,
+            metadata={"moisst_rig": data, "moisst_rig_root": str(rig.root)},
+        )
+
+
+moisst_rig_dataparser = DataParserSpecification(
+    config=MoisstRigDataParserConfig(),
+    description="moisst-rig/1 rig datasets (rig.json + TUM reference trajectory).",
+)

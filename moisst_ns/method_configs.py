@@ -1,0 +1,107 @@
+"""``ns-train moisst`` (paper settings) and ``ns-train moisst-lite`` (2 CPU cores), plus the ``moisst-rig`` dataparser.
+
+Schedules are expressed as fractions of the run and turned into steps by ``moisst_trainer_config`` so that a
+shorter or longer run (``moisst-calibrate --max-num-iterations``) keeps the same shape.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from nerfstudio.configs.base_config import LoggingConfig, MachineConfig, ViewerConfig
+from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from moisst_ns.calibration_optimizer import CalibrationOptimizerConfig
+from moisst_ns.data.dataparser import MoisstRigDataParserConfig
+from moisst_ns.model import MoisstModelConfig
+
+DEFAULT_ITERATIONS = {"moisst": 30000, "moisst-lite": 1500}
+
+
+def _adam_decay(lr: float, steps: int, weight_decay: float = 0.0, final_factor: float = 1e-2) -> dict:
+    """Adam with an exponential decay to ``final_factor`` of the initial rate over the run (paper IV)."""
+    return {
+        "optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15, weight_decay=weight_decay),
+        "scheduler": ExponentialDecaySchedulerConfig(lr_final=lr * final_factor, max_steps=steps),
+    }
+
+
+def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None = None) -> TrainerConfig:
+    """Build the trainer config of ``moisst`` or ``moisst-lite`` for a given run length.
+
+    ``moisst`` follows paper IV: Adam, network lr 1e-2, exponential decay of every rate to 1e-2 of its start,
+    weight decay 1e-6 on the network including the hash grid, the grid's removed after 5 of 50 epochs (10 %).
+    The calibration rates are in our metric units (metres, radians, seconds). ``moisst-lite`` is the 2-core CPU
+    preset: fewer rays and samples, a smaller grid, a reference-only warm-up and a coarse-to-fine hash release.
+    """
+    if method not in DEFAULT_ITERATIONS:
+        raise ValueError(f"unknown method {method!r}; choose one of {sorted(DEFAULT_ITERATIONS)}")
+    steps = max_num_iterations or DEFAULT_ITERATIONS[method]
+    lite = method == "moisst-lite"
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    model = MoisstModelConfig(
+        eval_num_rays_per_chunk=1 << 12 if lite else 1 << 15,
+        average_init_density=0.01,
+        camera_optimizer=CalibrationOptimizerConfig(),
+        hash_weight_decay_steps=int(0.1 * steps),
+    )
+    if lite:
+        model.num_proposal_samples_per_ray = (64, 32)
+        model.num_nerf_samples_per_ray = 24
+        model.num_levels = 12
+        model.log2_hashmap_size = 15
+        model.max_res = 1024
+        model.proposal_net_args_list = [
+            {"hidden_dim": 16, "log2_hashmap_size": 15, "num_levels": 5, "max_res": 128, "use_linear": False},
+            {"hidden_dim": 16, "log2_hashmap_size": 15, "num_levels": 5, "max_res": 256, "use_linear": False},
+        ]
+        model.calibration_warmup_steps = int(0.2 * steps)
+        model.reference_only_warmup = True
+        model.coarse_to_fine = (int(0.2 * steps), int(0.7 * steps))
+    calib_lr = 3e-3 if lite else 1e-3
+    return TrainerConfig(
+        method_name=method,
+        steps_per_eval_batch=10**9 if lite else 500,
+        steps_per_eval_image=10**9 if lite else 500,
+        steps_per_eval_all_images=10**9,
+        steps_per_save=max(steps // 3, 100) if lite else 2000,
+        max_num_iterations=steps,
+        mixed_precision=False,
+        use_grad_scaler=False,
+        save_only_latest_checkpoint=True,
+        machine=MachineConfig(device_type=device),
+        logging=LoggingConfig(steps_per_log=25 if lite else 100),
+        pipeline=VanillaPipelineConfig(
+            datamanager=VanillaDataManagerConfig(
+                dataparser=MoisstRigDataParserConfig(),
+                train_num_rays_per_batch=1024 if lite else 4096,
+                eval_num_rays_per_batch=1024 if lite else 4096,
+            ),
+            model=model,
+        ),
+        optimizers={
+            "proposal_networks": _adam_decay(1e-2, steps, weight_decay=1e-6),
+            "fields": _adam_decay(1e-2, steps, weight_decay=1e-6),
+            "hash_grids": _adam_decay(1e-2, steps, weight_decay=1e-6),
+            "calibration_extrinsics": _adam_decay(calib_lr, steps),
+            "calibration_time": _adam_decay(calib_lr, steps),
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 12 if lite else 1 << 15, websocket_host="127.0.0.1"),
+        vis="viewer",
+    )
+
+
+moisst_method = MethodSpecification(
+    config=moisst_trainer_config("moisst"),
+    description="MOISST spatiotemporal calibration of camera rigs (paper settings).",
+)
+
+moisst_lite_method = MethodSpecification(
+    config=moisst_trainer_config("moisst-lite"),
+    description="MOISST calibration, lean preset for a few CPU cores.",
+)

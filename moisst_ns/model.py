@@ -1,0 +1,172 @@
+"""``MoisstModel``: nerfacto whose pose optimiser is the rig calibration (paper section III-B/C).
+
+Thin glue over nerfacto: the field, proposal sampling and losses are nerfacto's; what changes is
+(1) the camera optimiser is ``CalibrationOptimizer`` (rays regenerated from ``T_r(t + delta_i) @ ref_T_i``),
+(2) the schedule of paper III-C.3 (weight decay on the hash grids for the first steps, then removed), plus an
+optional reference-only warm-up and a BARF-style coarse-to-fine release of the hash levels,
+(3) no LPIPS (its weights would be downloaded at run time).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Tuple, Type
+from unittest import mock
+
+import torch
+from torch import Tensor, nn
+from torch.nn import Parameter
+
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.field_components.encodings import HashEncoding
+from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
+
+
+class _NoLPIPS(nn.Module):
+    """Stands in for torchmetrics' LPIPS, whose AlexNet weights would be downloaded at run time."""
+
+    def forward(self, *args, **kwargs) -> Tensor:
+        return torch.tensor(float("nan"))
+
+
+def hash_level_weights(progress: float, num_levels: int, start_levels: float) -> Tensor:
+    """BARF-style coarse-to-fine weights of the hash levels (BARF, ICCV 2021, eq. 14 adapted to levels).
+
+    Args:
+        progress: 0 at the start of the release, 1 when every level is on.
+        num_levels: levels of the hash grid.
+        start_levels: how many levels are fully on at ``progress = 0``.
+
+    Returns:
+        (num_levels,) weights in [0, 1]: level ``k`` is weighted ``(1 - cos(pi * clamp(a - k, 0, 1))) / 2`` with
+        ``a = start_levels + progress * (num_levels - start_levels)``.
+    """
+    alpha = start_levels + min(max(progress, 0.0), 1.0) * (num_levels - start_levels)
+    k = torch.arange(num_levels, dtype=torch.float32)
+    return (1.0 - torch.cos(math.pi * torch.clamp(alpha - k, 0.0, 1.0))) / 2.0
+
+
+@dataclass
+class MoisstModelConfig(NerfactoModelConfig):
+    """nerfacto + MOISST rig calibration."""
+
+    _target: Type = field(default_factory=lambda: MoisstModel)
+    camera_optimizer: CalibrationOptimizerConfig = field(default_factory=CalibrationOptimizerConfig)
+    """The rig calibration (replaces nerfacto's per-frame pose optimiser)."""
+    calibration_warmup_steps: int = 0
+    """Steps at the start during which the calibration is frozen."""
+    reference_only_warmup: bool = False
+    """During the warm-up, supervise with the reference sensor's rays only (the others get zero loss weight), so
+    the scene is first built from the one sensor whose poses are known."""
+    coarse_to_fine: Tuple[int, int] = (0, 0)
+    """(start, end) steps of a BARF-style release of the hash levels: before ``start`` only
+    ``coarse_to_fine_start_levels`` levels are on, at ``end`` all; (0, 0) disables it."""
+    coarse_to_fine_start_levels: float = 2.0
+    """Levels fully on at the start of the coarse-to-fine release."""
+    hash_weight_decay_steps: int = 0
+    """Step at which the hash grids' weight decay (set on the ``hash_grids`` optimiser) is removed (paper
+    III-C.3: kept for the first epochs, then removed so finer detail can be learned)."""
+
+
+class MoisstModel(NerfactoModel):
+    """nerfacto with the rig calibration of MOISST."""
+
+    config: MoisstModelConfig
+    camera_optimizer: CalibrationOptimizer
+
+    def populate_modules(self):
+        with mock.patch("torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity", _NoLPIPS):
+            super().populate_modules()
+        metadata = self.kwargs.get("metadata") or {}
+        rig = metadata.get("moisst_rig")
+        if rig is None:
+            raise ValueError("MoisstModel needs a rig: use the moisst-rig dataparser (ns-train moisst --data DATASET)")
+        self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu", rig=rig)
+        self._hash_encodings: List[HashEncoding] = [m for m in self.modules() if isinstance(m, HashEncoding)]
+        self._level_weights: Optional[Tensor] = None
+        if self.config.coarse_to_fine != (0, 0):
+            if any(enc.tcnn_encoding is not None for enc in self._hash_encodings):
+                CONSOLE.print("[yellow]coarse_to_fine needs the torch hash grid (tcnn fuses it): disabled")
+            else:
+                for enc in self._hash_encodings:
+                    enc.register_forward_hook(self._mask_levels)
+        self._warmup_active = self.config.calibration_warmup_steps > 0
+        if self._warmup_active:
+            self.camera_optimizer.set_trainable(False)
+
+    # --- schedule ------------------------------------------------------------------------------------------------
+
+    def _mask_levels(self, module: HashEncoding, inputs, output: Tensor) -> Tensor:
+        if self._level_weights is None:
+            return output
+        weights = self._level_weights.to(output).repeat_interleave(module.features_per_level)
+        return output * weights
+
+    def _update_schedule(self, step: int) -> None:
+        start, end = self.config.coarse_to_fine
+        if (start, end) != (0, 0) and self._hash_encodings:
+            progress = 1.0 if step >= end else max(step - start, 0) / max(end - start, 1)
+            num_levels = self._hash_encodings[0].num_levels
+            self._level_weights = None if progress >= 1.0 else hash_level_weights(progress, num_levels, self.config.coarse_to_fine_start_levels)
+        if self._warmup_active and step >= self.config.calibration_warmup_steps:
+            self._warmup_active = False
+            self.camera_optimizer.set_trainable(self.config.camera_optimizer.mode != "off")
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        callbacks.append(
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self._update_schedule, update_every_num_iters=1)
+        )
+        callbacks.append(
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.camera_optimizer.project(), update_every_num_iters=1)
+        )
+        optimizers = training_callback_attributes.optimizers
+        if self.config.hash_weight_decay_steps > 0 and optimizers is not None and "hash_grids" in optimizers.optimizers:
+
+            def remove_hash_decay(step: int) -> None:
+                if step >= self.config.hash_weight_decay_steps:
+                    for group in optimizers.optimizers["hash_grids"].param_groups:
+                        group["weight_decay"] = 0.0
+
+            callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], remove_hash_decay, update_every_num_iters=1))
+        return callbacks
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        hash_params = [p for enc in self._hash_encodings for p in enc.parameters()]
+        hash_ids = {id(p) for p in hash_params}
+        groups = {
+            "proposal_networks": [p for p in self.proposal_networks.parameters() if id(p) not in hash_ids],
+            "fields": [p for p in self.field.parameters() if id(p) not in hash_ids],
+            "hash_grids": hash_params,
+        }
+        self.camera_optimizer.get_param_groups(param_groups=groups)
+        return groups
+
+    # --- losses and metrics --------------------------------------------------------------------------------------
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None):
+        if self.training and self._warmup_active and self.config.reference_only_warmup:
+            keep = self._reference_rays(batch)
+            if keep is not None and keep.any():
+                outputs = dict(outputs)
+                batch = dict(batch)
+                batch["image"] = batch["image"][keep]
+                for key in ("rgb", "accumulation"):
+                    outputs[key] = outputs[key][keep.to(outputs[key].device)]
+        return super().get_loss_dict(outputs, batch, metrics_dict)
+
+    def _reference_rays(self, batch) -> Optional[Tensor]:
+        rig = self.camera_optimizer.rig
+        if rig is None or "indices" not in batch:
+            return None
+        frame = batch["indices"][:, 0].long().to(self.camera_optimizer.frame_sensor.device)
+        return (self.camera_optimizer.frame_sensor[frame] == rig.data.reference_index).cpu()
+
+    def get_image_metrics_and_images(self, outputs, batch):
+        metrics, images = super().get_image_metrics_and_images(outputs, batch)
+        metrics.pop("lpips", None)
+        return metrics, images

@@ -1,0 +1,451 @@
+"""Reading, validating and writing the ``moisst-rig/1`` dataset format (see ``docs/rig-format.md``).
+
+Every problem with the input raises ``RigFormatError`` whose message is one line: ``<file>: <field>: <what is
+wrong>``. Nothing here writes into a dataset folder; writers take an explicit output path.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+FORMAT = "moisst-rig/1"
+SENSOR_TYPES = ("camera", "lidar")
+CAMERA_MODELS = ("PINHOLE", "OPENCV")
+CAMERA_KEYS = ("camera_model", "w", "h", "fl_x", "fl_y", "cx", "cy")
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2")
+TOP_KEYS = ("format", "reference_sensor", "trajectory", "sensors", "frames")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+LIDAR_SUFFIXES = (".npy", ".bin", ".npz")
+
+
+class RigFormatError(ValueError):
+    """A dataset does not follow ``moisst-rig/1``; the message names the file and the field."""
+
+    def __init__(self, file: Path | str, fieldname: str, problem: str):
+        self.file, self.field, self.problem = str(file), fieldname, problem
+        super().__init__(f"{file}: {fieldname}: {problem}")
+
+
+@dataclass
+class SensorSpec:
+    """One sensor of the rig as rig.json describes it."""
+
+    name: str
+    """Sensor name (a plain identifier: no path separators)."""
+    type: str
+    """``camera`` or ``lidar``."""
+    T_ref_sensor: np.ndarray
+    """Prior 4x4 pose of the sensor in the reference sensor's frame, metres."""
+    time_offset: float = 0.0
+    """Prior delta, seconds: a frame stamped t by this sensor was captured at reference time t + delta."""
+    intrinsics: Dict[str, object] = field(default_factory=dict)
+    """Camera only: nerfstudio transforms.json names (camera_model, w, h, fl_x, fl_y, cx, cy, k1, k2, p1, p2)."""
+
+
+@dataclass
+class FrameSpec:
+    """One frame: which sensor, its own-clock timestamp, and its file (relative to the dataset folder)."""
+
+    sensor: str
+    timestamp: float
+    file_path: str
+
+
+@dataclass
+class Rig:
+    """A loaded and validated rig dataset."""
+
+    root: Path
+    """Dataset folder (holds rig.json)."""
+    reference_sensor: str
+    sensors: Dict[str, SensorSpec]
+    frames: List[FrameSpec]
+    trajectory_file: str
+    """Path of the TUM trajectory, relative to ``root``."""
+    trajectory_stamps: np.ndarray
+    """(K,) absolute reference-clock timestamps."""
+    trajectory_positions: np.ndarray
+    """(K, 3) ``world_t_ref``, metres."""
+    trajectory_quats_xyzw: np.ndarray
+    """(K, 4) ``world_q_ref``, x, y, z, w."""
+
+    @property
+    def sensor_names(self) -> List[str]:
+        return list(self.sensors.keys())
+
+    def frames_of(self, sensor: str) -> List[FrameSpec]:
+        return [f for f in self.frames if f.sensor == sensor]
+
+
+def _is_rigid(matrix: np.ndarray, tol: float = 1e-4) -> Optional[str]:
+    if matrix.shape != (4, 4):
+        return f"expected a 4x4 matrix, got shape {matrix.shape}"
+    if not np.all(np.isfinite(matrix)):
+        return "contains NaN or inf"
+    if not np.allclose(matrix[3], [0, 0, 0, 1], atol=tol):
+        return f"last row must be [0, 0, 0, 1], got {matrix[3].tolist()}"
+    rot = matrix[:3, :3]
+    if not np.allclose(rot.T @ rot, np.eye(3), atol=tol) or abs(np.linalg.det(rot) - 1.0) > tol:
+        return "rotation block is not orthonormal with determinant +1 (not a rigid transform)"
+    return None
+
+
+def parse_rigid(value, file: Path | str, fieldname: str) -> np.ndarray:
+    """A 4x4 rigid transform from JSON, or ``RigFormatError`` naming file and field."""
+    try:
+        matrix = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RigFormatError(file, fieldname, "must be a 4x4 list of numbers") from None
+    problem = _is_rigid(matrix)
+    if problem:
+        raise RigFormatError(file, fieldname, problem)
+    return matrix
+
+
+def _number(value, file, fieldname, positive=False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise RigFormatError(file, fieldname, f"must be a finite number, got {value!r}")
+    if positive and value <= 0:
+        raise RigFormatError(file, fieldname, f"must be > 0, got {value!r}")
+    return float(value)
+
+
+def check_name(name: str, file, fieldname: str) -> str:
+    """Sensor names become folder and metric names: refuse anything that could act as a path."""
+    if not isinstance(name, str) or not name or name in (".", "..") or any(c in name for c in "/\\\0:") or name.strip() != name:
+        raise RigFormatError(file, fieldname, f"invalid sensor name {name!r} (no '/', '\\', ':', '..' or blanks)")
+    return name
+
+
+def resolve_in(root: Path, relative: str, file, fieldname: str) -> Path:
+    """Resolve a dataset-relative path, refusing absolute paths and ones that escape the dataset folder."""
+    if not isinstance(relative, str) or not relative:
+        raise RigFormatError(file, fieldname, "must be a non-empty relative path")
+    rel = Path(relative)
+    if rel.is_absolute():
+        raise RigFormatError(file, fieldname, f"{relative!r} must be relative to the dataset folder")
+    resolved = (root / rel).resolve()
+    if root.resolve() not in resolved.parents and resolved != root.resolve():
+        raise RigFormatError(file, fieldname, f"{relative!r} points outside the dataset folder")
+    return resolved
+
+
+def load_tum(path: Path) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a TUM trajectory: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comments allowed.
+
+    Returns:
+        (stamps (K,), positions (K, 3), unit quaternions x, y, z, w (K, 4)).
+    """
+    if not path.is_file():
+        raise RigFormatError(path, "trajectory", "file not found")
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) != 8:
+            raise RigFormatError(path, f"line {lineno}", f"expected 8 values 'timestamp tx ty tz qx qy qz qw', got {len(parts)}")
+        try:
+            rows.append([float(p) for p in parts])
+        except ValueError:
+            raise RigFormatError(path, f"line {lineno}", "not a number") from None
+    data = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
+    if len(data) < 2:
+        raise RigFormatError(path, "poses", f"needs at least 2 poses, got {len(data)}")
+    if not np.all(np.isfinite(data)):
+        raise RigFormatError(path, "poses", "contains NaN or inf")
+    if np.any(np.diff(data[:, 0]) <= 0):
+        bad = int(np.argmax(np.diff(data[:, 0]) <= 0)) + 2
+        raise RigFormatError(path, "timestamp", f"timestamps must be strictly increasing (pose {bad})")
+    norms = np.linalg.norm(data[:, 4:8], axis=1)
+    if np.any(np.abs(norms - 1.0) > 1e-3):
+        bad = int(np.argmax(np.abs(norms - 1.0) > 1e-3)) + 1
+        raise RigFormatError(path, f"quaternion of pose {bad}", f"not a unit quaternion (norm {norms[bad - 1]:.6f})")
+    return data[:, 0], data[:, 1:4], data[:, 4:8] / norms[:, None]
+
+
+def write_tum(path: Path, stamps, positions, quats_xyzw, header: str = "timestamp tx ty tz qx qy qz qw") -> None:
+    """Write a TUM trajectory (full float precision)."""
+    lines = [f"# {header}"]
+    for s, p, q in zip(stamps, positions, quats_xyzw):
+        lines.append(" ".join(repr(float(v)) for v in (s, *p, *q)))
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
+    where = f"sensors.{name}"
+    if not isinstance(raw, dict):
+        raise RigFormatError(file, where, "must be an object")
+    stype = raw.get("type")
+    if stype not in SENSOR_TYPES:
+        raise RigFormatError(file, f"{where}.type", f"must be one of {SENSOR_TYPES}, got {stype!r}")
+    if "T_ref_sensor" not in raw:
+        raise RigFormatError(file, f"{where}.T_ref_sensor", "missing")
+    allowed = {"type", "T_ref_sensor", "time_offset"}
+    if stype == "camera":
+        allowed |= set(CAMERA_KEYS) | set(DISTORTION_KEYS) | {"k3", "k4"}
+    unknown = sorted(set(raw) - allowed)
+    if unknown:
+        raise RigFormatError(file, f"{where}.{unknown[0]}", f"unknown key for a {stype}")
+    spec = SensorSpec(
+        name=name,
+        type=stype,
+        T_ref_sensor=parse_rigid(raw["T_ref_sensor"], file, f"{where}.T_ref_sensor"),
+        time_offset=_number(raw.get("time_offset", 0.0), file, f"{where}.time_offset"),
+    )
+    if stype == "camera":
+        for key in CAMERA_KEYS:
+            if key not in raw:
+                raise RigFormatError(file, f"{where}.{key}", "missing (required for a camera)")
+        model = raw["camera_model"]
+        if model not in CAMERA_MODELS:
+            raise RigFormatError(file, f"{where}.camera_model", f"unsupported camera model {model!r}; supported: {', '.join(CAMERA_MODELS)}")
+        intr: Dict[str, object] = {"camera_model": model}
+        for key in ("w", "h"):
+            value = raw[key]
+            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+                raise RigFormatError(file, f"{where}.{key}", f"must be a positive integer, got {value!r}")
+            intr[key] = value
+        for key in ("fl_x", "fl_y"):
+            intr[key] = _number(raw[key], file, f"{where}.{key}", positive=True)
+        for key in ("cx", "cy"):
+            intr[key] = _number(raw[key], file, f"{where}.{key}")
+        for key in DISTORTION_KEYS + ("k3", "k4"):
+            intr[key] = _number(raw.get(key, 0.0), file, f"{where}.{key}")
+        if model == "PINHOLE" and any(intr[k] != 0.0 for k in DISTORTION_KEYS + ("k3", "k4")):
+            raise RigFormatError(file, f"{where}.camera_model", "PINHOLE cameras take no distortion; use OPENCV")
+        spec.intrinsics = intr
+    return spec
+
+
+def _image_size(path: Path) -> Tuple[int, int]:
+    from PIL import Image
+
+    with Image.open(path) as img:
+        return img.size
+
+
+def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
+    """Load and validate ``DATASET/rig.json`` (and its trajectory, and the frames' files).
+
+    Args:
+        dataset: the dataset folder, or the rig.json file itself.
+        check_files: check that every frame's file exists, images have the size w x h, scans are readable.
+
+    Returns:
+        The validated rig.
+    """
+    path = Path(dataset)
+    file = path if path.suffix == ".json" else path / "rig.json"
+    root = file.parent
+    if not file.is_file():
+        raise RigFormatError(file, "rig.json", "file not found")
+    try:
+        raw = json.loads(file.read_text())
+    except json.JSONDecodeError as err:
+        raise RigFormatError(file, f"line {err.lineno}", f"invalid JSON: {err.msg}") from None
+    if not isinstance(raw, dict):
+        raise RigFormatError(file, "(top level)", "must be a JSON object")
+    for key in TOP_KEYS:
+        if key not in raw:
+            raise RigFormatError(file, key, "missing")
+    unknown = sorted(set(raw) - set(TOP_KEYS) - {"comment", "metadata"})
+    if unknown:
+        raise RigFormatError(file, unknown[0], "unknown key")
+    if raw["format"] != FORMAT:
+        raise RigFormatError(file, "format", f"expected {FORMAT!r}, got {raw['format']!r}")
+    if not isinstance(raw["sensors"], dict) or not raw["sensors"]:
+        raise RigFormatError(file, "sensors", "must be a non-empty object")
+    sensors = {check_name(n, file, f"sensors.{n}"): _parse_sensor(n, s, file) for n, s in raw["sensors"].items()}
+    ref = raw["reference_sensor"]
+    if ref not in sensors:
+        raise RigFormatError(file, "reference_sensor", f"{ref!r} is not one of the sensors {sorted(sensors)}")
+    if not np.allclose(sensors[ref].T_ref_sensor, np.eye(4), atol=1e-6):
+        raise RigFormatError(file, f"sensors.{ref}.T_ref_sensor", "the reference sensor's extrinsic must be the identity")
+    if sensors[ref].time_offset != 0.0:
+        raise RigFormatError(file, f"sensors.{ref}.time_offset", "the reference sensor's time offset must be 0")
+    traj_path = resolve_in(root, raw["trajectory"], file, "trajectory")
+    stamps, positions, quats = load_tum(traj_path)
+
+    if not isinstance(raw["frames"], list) or not raw["frames"]:
+        raise RigFormatError(file, "frames", "must be a non-empty list")
+    frames: List[FrameSpec] = []
+    for i, fr in enumerate(raw["frames"]):
+        where = f"frames[{i}]"
+        if not isinstance(fr, dict):
+            raise RigFormatError(file, where, "must be an object")
+        for key in ("sensor", "timestamp", "file_path"):
+            if key not in fr:
+                raise RigFormatError(file, f"{where}.{key}", "missing")
+        unknown = sorted(set(fr) - {"sensor", "timestamp", "file_path"})
+        if unknown:
+            raise RigFormatError(file, f"{where}.{unknown[0]}", "unknown key")
+        if fr["sensor"] not in sensors:
+            raise RigFormatError(file, f"{where}.sensor", f"unknown sensor {fr['sensor']!r}")
+        stamp = _number(fr["timestamp"], file, f"{where}.timestamp")
+        fpath = resolve_in(root, fr["file_path"], file, f"{where}.file_path")
+        stype = sensors[fr["sensor"]].type
+        suffixes = IMAGE_SUFFIXES if stype == "camera" else LIDAR_SUFFIXES
+        if fpath.suffix.lower() not in suffixes:
+            raise RigFormatError(file, f"{where}.file_path", f"a {stype} frame must be one of {suffixes}, got {fr['file_path']!r}")
+        if check_files:
+            if not fpath.is_file():
+                raise RigFormatError(file, f"{where}.file_path", f"file not found: {fpath}")
+            if stype == "camera":
+                intr = sensors[fr["sensor"]].intrinsics
+                try:
+                    size = _image_size(fpath)
+                except Exception as err:  # PIL raises several types for unreadable images
+                    raise RigFormatError(fpath, f"{where}.file_path", f"unreadable image ({type(err).__name__})") from None
+                if size != (intr["w"], intr["h"]):
+                    raise RigFormatError(
+                        fpath, f"{where} (sensor {fr['sensor']})", f"image is {size[0]}x{size[1]}, rig.json says w x h = {intr['w']}x{intr['h']}"
+                    )
+        frames.append(FrameSpec(sensor=fr["sensor"], timestamp=stamp, file_path=fr["file_path"]))
+    for name in sensors:
+        if not any(f.sensor == name for f in frames):
+            raise RigFormatError(file, f"sensors.{name}", "has no frames")
+    return Rig(
+        root=root,
+        reference_sensor=ref,
+        sensors=sensors,
+        frames=frames,
+        trajectory_file=raw["trajectory"],
+        trajectory_stamps=stamps,
+        trajectory_positions=positions,
+        trajectory_quats_xyzw=quats,
+    )
+
+
+def rig_to_json(rig: Rig) -> dict:
+    """The rig.json content of ``rig`` (inverse of ``load_rig``)."""
+    sensors = {}
+    for name, s in rig.sensors.items():
+        entry = {"type": s.type, "T_ref_sensor": np.asarray(s.T_ref_sensor).tolist(), "time_offset": float(s.time_offset)}
+        entry.update(s.intrinsics)
+        sensors[name] = entry
+    return {
+        "format": FORMAT,
+        "reference_sensor": rig.reference_sensor,
+        "trajectory": rig.trajectory_file,
+        "sensors": sensors,
+        "frames": [{"sensor": f.sensor, "timestamp": f.timestamp, "file_path": f.file_path} for f in rig.frames],
+    }
+
+
+def write_rig_json(rig: Rig, path: Path) -> None:
+    """Write rig.json content to ``path`` (never call with a path inside someone's input dataset)."""
+    Path(path).write_text(json.dumps(rig_to_json(rig), indent=1) + "\n")
+
+
+@dataclass
+class Calibration:
+    """Extrinsics and time offsets of every sensor: the ground_truth.json / calibration.json schema."""
+
+    reference_sensor: str
+    T_ref_sensor: Dict[str, np.ndarray]
+    time_offset: Dict[str, float]
+
+    def to_json(self) -> dict:
+        return {
+            "reference_sensor": self.reference_sensor,
+            "sensors": {
+                n: {"T_ref_sensor": np.asarray(self.T_ref_sensor[n]).tolist(), "time_offset": float(self.time_offset[n])}
+                for n in self.T_ref_sensor
+            },
+        }
+
+    def write(self, path: Path) -> None:
+        Path(path).write_text(json.dumps(self.to_json(), indent=1) + "\n")
+
+    @classmethod
+    def from_rig(cls, rig: Rig) -> "Calibration":
+        """The priors of a rig, as a calibration."""
+        return cls(rig.reference_sensor, {n: s.T_ref_sensor for n, s in rig.sensors.items()}, {n: s.time_offset for n, s in rig.sensors.items()})
+
+
+def load_calibration(path: Path | str) -> Calibration:
+    """Read ground_truth.json / calibration.json, validating every field."""
+    file = Path(path)
+    if not file.is_file():
+        raise RigFormatError(file, "(file)", "file not found")
+    try:
+        raw = json.loads(file.read_text())
+    except json.JSONDecodeError as err:
+        raise RigFormatError(file, f"line {err.lineno}", f"invalid JSON: {err.msg}") from None
+    for key in ("reference_sensor", "sensors"):
+        if key not in raw:
+            raise RigFormatError(file, key, "missing")
+    if not isinstance(raw["sensors"], dict) or raw["reference_sensor"] not in raw["sensors"]:
+        raise RigFormatError(file, "reference_sensor", f"{raw['reference_sensor']!r} is not in sensors")
+    transforms, offsets = {}, {}
+    for name, entry in raw["sensors"].items():
+        check_name(name, file, f"sensors.{name}")
+        if not isinstance(entry, dict) or "T_ref_sensor" not in entry:
+            raise RigFormatError(file, f"sensors.{name}.T_ref_sensor", "missing")
+        transforms[name] = parse_rigid(entry["T_ref_sensor"], file, f"sensors.{name}.T_ref_sensor")
+        offsets[name] = _number(entry.get("time_offset", 0.0), file, f"sensors.{name}.time_offset")
+    return Calibration(raw["reference_sensor"], transforms, offsets)
+
+
+def load_lidar_scan(path: Path | str, min_range: float = 0.0) -> Tuple[np.ndarray, Optional[np.ndarray], int]:
+    """Read one LiDAR frame (``.npy`` (N,3), KITTI ``.bin`` (N,4), ``.npz`` with ``points`` and optional ``times``).
+
+    Points with NaN/inf coordinates are dropped (and counted); so are points closer than ``min_range``.
+
+    Returns:
+        (points (M, 3) float32 in the LiDAR frame, per-point time offsets (M,) seconds or None, dropped count).
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise RigFormatError(file, "file_path", "file not found")
+    times = None
+    suffix = file.suffix.lower()
+    try:
+        if suffix == ".npy":
+            points = np.load(file, allow_pickle=False)
+            key = "array"
+        elif suffix == ".bin":
+            flat = np.fromfile(file, dtype=np.float32)
+            if flat.size % 4:
+                raise RigFormatError(file, "data", f"KITTI .bin must hold float32 x,y,z,intensity; {flat.size} floats is not a multiple of 4")
+            points = flat.reshape(-1, 4)[:, :3]
+            key = "data"
+        elif suffix == ".npz":
+            with np.load(file, allow_pickle=False) as data:
+                if "points" not in data:
+                    raise RigFormatError(file, "points", "missing array")
+                points = data["points"]
+                times = data["times"] if "times" in data else None
+            key = "points"
+        else:
+            raise RigFormatError(file, "file_path", f"unsupported LiDAR file type {suffix!r}")
+    except (ValueError, OSError) as err:
+        if isinstance(err, RigFormatError):
+            raise
+        raise RigFormatError(file, "data", f"unreadable ({err})") from None
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise RigFormatError(file, key, f"expected an (N, 3) array, got shape {points.shape}")
+    if times is not None:
+        times = np.asarray(times, dtype=np.float64)
+        if times.shape != (points.shape[0],):
+            raise RigFormatError(file, "times", f"expected shape ({points.shape[0]},) to match points, got {times.shape}")
+        if not np.all(np.isfinite(times)):
+            raise RigFormatError(file, "times", "contains NaN or inf")
+    finite = np.all(np.isfinite(points), axis=1)
+    keep = finite & (np.linalg.norm(np.where(finite[:, None], points, 0), axis=1) > min_range)
+    dropped = int((~finite).sum())
+    points = points[keep].astype(np.float32)
+    if times is not None:
+        times = times[keep]
+    if len(points) == 0:
+        raise RigFormatError(file, key, "no points left after dropping non-finite points and range filtering (empty scan)")
+    return points, times, dropped

@@ -1,0 +1,202 @@
+"""Rig geometry of MOISST (paper section III-A/B), in plain torch + roma.
+
+Nothing here imports nerfstudio. All poses are 4x4 homogeneous matrices ``world_T_sensor`` (a point in the
+sensor frame maps to the world frame), metres and seconds, in the dataset's own frame.
+
+Paper equations, by name:
+
+* eq. 1, ``interpolate_trajectory``: the continuous reference trajectory ``T_r(t)`` (SLERP on rotation, LERP on
+  translation, extrapolated past both ends by continuing the first/last segment's motion).
+* eq. 2, ``sensor_pose``: ``world_T_i(t + delta_i) = T_r(t + delta_i) @ ref_T_i``.
+* eq. 10-12, ``calibrated_extrinsic`` + ``sensor_pose``: the pose every ray of sensor ``i`` is regenerated from,
+  as a differentiable function of the calibration parameters (extrinsic correction and ``delta_i``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Tuple
+
+import roma
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor
+
+
+def make_pose(rotation: Float[Tensor, "*batch 3 3"], translation: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 4 4"]:
+    """Stack a rotation and a translation into a homogeneous 4x4 rigid transform.
+
+    Args:
+        rotation: rotation matrices.
+        translation: translation vectors.
+
+    Returns:
+        The 4x4 matrices ``[[R, t], [0, 0, 0, 1]]``.
+    """
+    batch = rotation.shape[:-2]
+    pose = torch.zeros(*batch, 4, 4, dtype=rotation.dtype, device=rotation.device)
+    pose[..., :3, :3] = rotation
+    pose[..., :3, 3] = translation
+    pose[..., 3, 3] = 1.0
+    return pose
+
+
+def invert_pose(pose: Float[Tensor, "*batch 4 4"]) -> Float[Tensor, "*batch 4 4"]:
+    """Inverse of rigid transforms, using ``R^T`` instead of a general matrix inverse.
+
+    Args:
+        pose: rigid 4x4 transforms.
+
+    Returns:
+        Their inverses.
+    """
+    rot_t = pose[..., :3, :3].transpose(-1, -2)
+    return make_pose(rot_t, -(rot_t @ pose[..., :3, 3:4])[..., 0])
+
+
+@dataclass
+class ReferenceTrajectory:
+    """Samples of the reference sensor's trajectory ``world_T_ref`` (the input of paper eq. 1).
+
+    Times are relative to ``t0`` (float64: float32 cannot hold epoch seconds to the millisecond).
+    """
+
+    times: Float[Tensor, "num_poses"]
+    """Sample times on the reference clock, seconds since ``t0``, strictly increasing (float64)."""
+    rotations: Float[Tensor, "num_poses 3 3"]
+    """``world_R_ref`` at each sample."""
+    translations: Float[Tensor, "num_poses 3"]
+    """``world_t_ref`` at each sample, metres."""
+    t0: float = 0.0
+    """Absolute time (seconds, reference clock) that ``times`` are relative to."""
+
+    @classmethod
+    def from_tum(cls, stamps, positions, quats_xyzw, t0: float | None = None) -> "ReferenceTrajectory":
+        """Build from TUM columns (absolute stamps, ``tx ty tz``, ``qx qy qz qw``).
+
+        Args:
+            stamps: (K,) absolute timestamps, seconds.
+            positions: (K, 3) translations, metres.
+            quats_xyzw: (K, 4) unit quaternions, x, y, z, w (roma's convention).
+            t0: time origin; the first stamp when None.
+
+        Returns:
+            The trajectory, float64.
+        """
+        stamps = torch.as_tensor(stamps, dtype=torch.float64)
+        t0 = float(stamps[0]) if t0 is None else float(t0)
+        quats = roma.quat_normalize(torch.as_tensor(quats_xyzw, dtype=torch.float64))
+        return cls(
+            times=stamps - t0,
+            rotations=roma.unitquat_to_rotmat(quats),
+            translations=torch.as_tensor(positions, dtype=torch.float64),
+            t0=t0,
+        )
+
+    def to(self, device) -> "ReferenceTrajectory":
+        return ReferenceTrajectory(self.times.to(device), self.rotations.to(device), self.translations.to(device), self.t0)
+
+    def __call__(self, t: Float[Tensor, "*batch"]) -> Float[Tensor, "*batch 4 4"]:
+        """``T_r(t)``, paper eq. 1 (see ``interpolate_trajectory``)."""
+        return interpolate_trajectory(self.times, self.rotations, self.translations, t)
+
+
+def interpolate_trajectory(
+    times: Float[Tensor, "num_poses"],
+    rotations: Float[Tensor, "num_poses 3 3"],
+    translations: Float[Tensor, "num_poses 3"],
+    t: Float[Tensor, "*batch"],
+) -> Float[Tensor, "*batch 4 4"]:
+    """Paper eq. 1: the continuous reference trajectory ``world_T_ref(t) = T_r(t)``.
+
+    Between the two bracketing samples ``k, k+1`` with ``a = (t - t_k) / (t_{k+1} - t_k)``:
+    ``R(t) = R_k Exp(a Log(R_k^T R_{k+1}))`` (SLERP) and ``p(t) = (1 - a) p_k + a p_{k+1}`` (LERP). Before the
+    first / after the last sample the first / last segment is used with ``a < 0`` / ``a > 1``, which continues
+    that segment's motion at constant angular and linear velocity. Differentiable with respect to ``t``.
+
+    Args:
+        times: strictly increasing sample times.
+        rotations: rotation at each sample.
+        translations: translation at each sample.
+        t: query times, same clock and origin as ``times``; any shape.
+
+    Returns:
+        ``world_T_ref`` at each query time, in the dtype of ``rotations``.
+    """
+    num = times.shape[0]
+    if num < 2:
+        raise ValueError("interpolate_trajectory needs at least 2 poses")
+    t = t.to(times.dtype)
+    seg: Int[Tensor, "*batch"] = torch.clamp(torch.searchsorted(times, t.detach(), right=True) - 1, 0, num - 2)
+    t_k = times[seg]
+    alpha = (t - t_k) / (times[seg + 1] - t_k)
+    rot_k = rotations[seg]
+    rel_rotvec = roma.rotmat_to_rotvec(rot_k.transpose(-1, -2) @ rotations[seg + 1])
+    rot = rot_k @ roma.rotvec_to_rotmat(alpha[..., None].to(rel_rotvec.dtype) * rel_rotvec)
+    trans = translations[seg] + alpha[..., None].to(translations.dtype) * (translations[seg + 1] - translations[seg])
+    return make_pose(rot, trans)
+
+
+def sensor_pose(
+    ref_pose: Float[Tensor, "*batch 4 4"], ref_T_sensor: Float[Tensor, "*batch 4 4"]
+) -> Float[Tensor, "*batch 4 4"]:
+    """Paper eq. 2: ``world_T_i(t + delta_i) = T_r(t + delta_i) @ ref_T_i``.
+
+    Args:
+        ref_pose: ``T_r(t + delta_i)``, the reference pose at the sensor frame's reference-clock time.
+        ref_T_sensor: the sensor's extrinsic, pose of the sensor in the reference sensor's frame.
+
+    Returns:
+        ``world_T_sensor``.
+    """
+    return ref_pose @ ref_T_sensor
+
+
+def calibrated_extrinsic(
+    prior: Float[Tensor, "*batch 4 4"], rotvec: Float[Tensor, "*batch 3"], translation: Float[Tensor, "*batch 3"]
+) -> Float[Tensor, "*batch 4 4"]:
+    """The extrinsic ``ref_T_i`` being optimised in paper eq. 12: a prior plus a correction.
+
+    ``R = R_prior Exp(rotvec)`` (rotation correction in the sensor's own frame) and ``t = t_prior + translation``
+    (translation correction in the reference frame, metres). Zero correction gives the prior exactly.
+
+    Args:
+        prior: prior extrinsics.
+        rotvec: rotation corrections as rotation vectors, radians.
+        translation: translation corrections, metres, reference frame.
+
+    Returns:
+        The corrected extrinsics.
+    """
+    rot = prior[..., :3, :3] @ roma.rotvec_to_rotmat(rotvec.to(prior.dtype))
+    return make_pose(rot, prior[..., :3, 3] + translation.to(prior.dtype))
+
+
+def calibration_errors(
+    estimate: Float[Tensor, "*batch 4 4"], truth: Float[Tensor, "*batch 4 4"]
+) -> Tuple[Float[Tensor, "*batch"], Float[Tensor, "*batch"]]:
+    """Errors of an extrinsic, as the paper reports them (section IV).
+
+    Args:
+        estimate: estimated ``ref_T_i``.
+        truth: true ``ref_T_i``.
+
+    Returns:
+        (translation error in metres, L2 norm; rotation error in degrees, geodesic distance).
+    """
+    trans = torch.linalg.norm(estimate[..., :3, 3] - truth[..., :3, 3], dim=-1)
+    rot = torch.rad2deg(roma.rotmat_geodesic_distance(estimate[..., :3, :3], truth[..., :3, :3]))
+    return trans, rot
+
+
+def pose_to_xyz_rpy(pose: Float[Tensor, "*batch 4 4"]) -> Float[Tensor, "*batch 6"]:
+    """x, y, z (metres) and roll, pitch, yaw (degrees, extrinsic XYZ = R = Rz(yaw) Ry(pitch) Rx(roll)).
+
+    Args:
+        pose: rigid transforms.
+
+    Returns:
+        ``[x, y, z, roll, pitch, yaw]``.
+    """
+    rpy = roma.rotmat_to_euler("XYZ", pose[..., :3, :3], degrees=True)
+    return torch.cat([pose[..., :3, 3], rpy], dim=-1)
