@@ -9,8 +9,10 @@ optional reference-only warm-up and a BARF-style coarse-to-fine release of the h
 
 from __future__ import annotations
 
+import csv
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Type
 from unittest import mock
 
@@ -28,6 +30,9 @@ from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOpt
 
 class _NoLPIPS(nn.Module):
     """Stands in for torchmetrics' LPIPS, whose AlexNet weights would be downloaded at run time."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__()
 
     def forward(self, *args, **kwargs) -> Tensor:
         return torch.tensor(float("nan"))
@@ -67,6 +72,9 @@ class MoisstModelConfig(NerfactoModelConfig):
     ``coarse_to_fine_start_levels`` levels are on, at ``end`` all; (0, 0) disables it."""
     coarse_to_fine_start_levels: float = 2.0
     """Levels fully on at the start of the coarse-to-fine release."""
+    calibration_log_every: int = 25
+    """Every this many steps, append each sensor's estimate (and errors, with ground truth) to
+    ``calibration_history.csv`` in the run folder."""
     hash_weight_decay_steps: int = 0
     """Step at which the hash grids' weight decay (set on the ``hash_grids`` optimiser) is removed (paper
     III-C.3: kept for the first epochs, then removed so finer detail can be learned)."""
@@ -87,7 +95,7 @@ class MoisstModel(NerfactoModel):
             raise ValueError("MoisstModel needs a rig: use the moisst-rig dataparser (ns-train moisst --data DATASET)")
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu", rig=rig)
         self._hash_encodings: List[HashEncoding] = [m for m in self.modules() if isinstance(m, HashEncoding)]
-        self._level_weights: Optional[Tensor] = None
+        self._c2f_progress: Optional[float] = None
         if self.config.coarse_to_fine != (0, 0):
             if any(enc.tcnn_encoding is not None for enc in self._hash_encodings):
                 CONSOLE.print("[yellow]coarse_to_fine needs the torch hash grid (tcnn fuses it): disabled")
@@ -101,17 +109,16 @@ class MoisstModel(NerfactoModel):
     # --- schedule ------------------------------------------------------------------------------------------------
 
     def _mask_levels(self, module: HashEncoding, inputs, output: Tensor) -> Tensor:
-        if self._level_weights is None:
+        if self._c2f_progress is None:
             return output
-        weights = self._level_weights.to(output).repeat_interleave(module.features_per_level)
-        return output * weights
+        weights = hash_level_weights(self._c2f_progress, module.num_levels, self.config.coarse_to_fine_start_levels)
+        return output * weights.to(output).repeat_interleave(module.features_per_level)
 
     def _update_schedule(self, step: int) -> None:
         start, end = self.config.coarse_to_fine
         if (start, end) != (0, 0) and self._hash_encodings:
             progress = 1.0 if step >= end else max(step - start, 0) / max(end - start, 1)
-            num_levels = self._hash_encodings[0].num_levels
-            self._level_weights = None if progress >= 1.0 else hash_level_weights(progress, num_levels, self.config.coarse_to_fine_start_levels)
+            self._c2f_progress = None if progress >= 1.0 else progress
         if self._warmup_active and step >= self.config.calibration_warmup_steps:
             self._warmup_active = False
             self.camera_optimizer.set_trainable(self.config.camera_optimizer.mode != "off")
@@ -124,6 +131,16 @@ class MoisstModel(NerfactoModel):
         callbacks.append(
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.camera_optimizer.project(), update_every_num_iters=1)
         )
+        trainer = training_callback_attributes.trainer
+        if trainer is not None and self.config.calibration_log_every > 0:
+            history = Path(trainer.base_dir) / "calibration_history.csv"
+            callbacks.append(
+                TrainingCallback(
+                    [TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                    lambda step: self.log_calibration(history, step),
+                    update_every_num_iters=self.config.calibration_log_every,
+                )
+            )
         optimizers = training_callback_attributes.optimizers
         if self.config.hash_weight_decay_steps > 0 and optimizers is not None and "hash_grids" in optimizers.optimizers:
 
@@ -145,6 +162,19 @@ class MoisstModel(NerfactoModel):
         }
         self.camera_optimizer.get_param_groups(param_groups=groups)
         return groups
+
+    def log_calibration(self, path: Path, step: int) -> None:
+        """Append the current estimate of every non-reference sensor to the history CSV."""
+        summary = self.camera_optimizer.sensor_summary()
+        columns = ["step", "sensor", "x", "y", "z", "roll", "pitch", "yaw", "delta_ms"]
+        columns += ["err_translation_cm", "err_rotation_deg", "err_time_ms"]
+        new = not path.exists()
+        with path.open("a", newline="") as handle:
+            writer = csv.writer(handle)
+            if new:
+                writer.writerow(columns)
+            for name, values in summary.items():
+                writer.writerow([step, name] + [f"{values[c]:.9g}" if c in values else "" for c in columns[2:]])
 
     # --- losses and metrics --------------------------------------------------------------------------------------
 

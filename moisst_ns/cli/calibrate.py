@@ -1,0 +1,121 @@
+"""``moisst-calibrate DATASET --output-dir OUT``: calibrate a rig and write ``OUT/calibration.json``.
+
+Runs nerfstudio training of ``moisst`` or ``moisst-lite`` in-process and writes the calibration in the rig
+format's ground-truth schema (metres and seconds in the dataset's own frame), plus the nerfstudio run
+(config.yml, checkpoint) under ``OUT/<method>/run``. Nothing is written into DATASET.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Literal, Optional
+
+import tyro
+
+
+@dataclass
+class CalibrateConfig:
+    """Calibrate the extrinsics and time offsets of a rig (MOISST)."""
+
+    dataset: tyro.conf.Positional[Path]
+    """Dataset folder holding rig.json (moisst-rig/1)."""
+    output_dir: Path = Path("outputs/calibration")
+    """Where calibration.json and the nerfstudio run go (created; must not be a file)."""
+    method: Literal["moisst", "moisst-lite"] = "moisst-lite"
+    """``moisst`` (paper settings, for a GPU) or ``moisst-lite`` (2 CPU cores)."""
+    max_num_iterations: Optional[int] = None
+    """Training steps (schedules scale with it); the method's default when omitted."""
+    seed: int = 42
+    """Random seed (sampling, initialisation)."""
+    viewer: bool = False
+    """Also serve nerfstudio's viewer during training (on 127.0.0.1 unless --viewer-host)."""
+    viewer_host: str = "127.0.0.1"
+    """Host the viewer listens on; reach it remotely through an ssh port forward rather than 0.0.0.0."""
+    threads: Optional[int] = None
+    """torch CPU threads (pin for bit-repeatable runs); torch's default when omitted."""
+
+
+def fail(message: str) -> None:
+    print(f"moisst-calibrate: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def format_error_table(title: str, errors: Dict[str, Dict[str, float]]) -> str:
+    """A fixed-width table of per-sensor translation (cm), rotation (deg) and time (ms) errors."""
+    lines = [title, f"  {'sensor':<18}{'transl. (cm)':>14}{'rot. (deg)':>12}{'time (ms)':>11}"]
+    for name, e in errors.items():
+        lines.append(f"  {name:<18}{e['translation_cm']:>14.2f}{e['rotation_deg']:>12.3f}{e['time_ms']:>11.2f}")
+    return "\n".join(lines)
+
+
+def run_calibration(cfg: CalibrateConfig) -> Path:
+    """Train, then write ``calibration.json``; returns the run's config.yml path."""
+    import torch
+
+    from moisst_ns.method_configs import moisst_trainer_config
+    from moisst_ns.rig.calibration import calibration_report_errors
+    from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration, load_rig
+
+    try:
+        rig = load_rig(cfg.dataset)
+    except RigFormatError as err:
+        fail(str(err))
+    out = cfg.output_dir
+    if out.exists() and not out.is_dir():
+        fail(f"{out}: --output-dir: is a file, not a folder")
+    if out.resolve() == rig.root.resolve() or rig.root.resolve() in out.resolve().parents:
+        fail(f"{out}: --output-dir: must not be inside the dataset folder {rig.root} (datasets are never written)")
+    out.mkdir(parents=True, exist_ok=True)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+
+    config = moisst_trainer_config(cfg.method, cfg.max_num_iterations)
+    config.pipeline.datamanager.data = rig.root
+    config.pipeline.datamanager.dataparser.data = rig.root
+    config.output_dir = out
+    config.experiment_name = "."
+    config.timestamp = "run"
+    config.machine.seed = cfg.seed
+    config.viewer.quit_on_train_completion = True
+    config.viewer.websocket_host = cfg.viewer_host
+    config.vis = "viewer+tensorboard" if cfg.viewer else "tensorboard"
+    config.save_config()
+
+    truth_file = rig.root / "ground_truth.json"
+    truth = load_calibration(truth_file) if truth_file.is_file() else None
+    prior = Calibration.from_rig(rig)
+
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    start = time.time()
+    trainer.train()
+    wall = time.time() - start
+
+    optimizer = trainer.pipeline.model.camera_optimizer
+    estimate = optimizer.rig.estimate()
+    estimate.write(out / "calibration.json")
+    summary = {"method": cfg.method, "iterations": config.max_num_iterations, "wall_time_s": wall, "seed": cfg.seed}
+    print(f"\nwrote {out / 'calibration.json'}  ({config.max_num_iterations} steps, {wall:.0f} s)")
+    if truth is not None:
+        before = calibration_report_errors(prior, truth)
+        after = calibration_report_errors(estimate, truth)
+        skip = {truth.reference_sensor}
+        before = {k: v for k, v in before.items() if k not in skip}
+        after = {k: v for k, v in after.items() if k not in skip}
+        print(format_error_table("errors of the priors (before):", before))
+        print(format_error_table("errors after calibration:", after))
+        summary["errors_before"], summary["errors_after"] = before, after
+    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    return config.get_base_dir() / "config.yml"
+
+
+def main() -> None:
+    run_calibration(tyro.cli(CalibrateConfig))
+
+
+if __name__ == "__main__":
+    main()
