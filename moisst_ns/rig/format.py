@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -24,12 +25,17 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 LIDAR_SUFFIXES = (".npy", ".bin", ".npz")
 
 
+def _one_line(text) -> str:
+    """Escape line breaks, so that a message built from user data (key names, paths) stays on one line."""
+    return str(text).replace("\r", "\\r").replace("\n", "\\n")
+
+
 class RigFormatError(ValueError):
     """A dataset does not follow ``moisst-rig/1``; the message names the file and the field."""
 
     def __init__(self, file: Path | str, fieldname: str, problem: str):
-        self.file, self.field, self.problem = str(file), fieldname, problem
-        super().__init__(f"{file}: {fieldname}: {problem}")
+        self.file, self.field, self.problem = _one_line(file), _one_line(fieldname), _one_line(problem)
+        super().__init__(f"{self.file}: {self.field}: {self.problem}")
 
 
 @dataclass
@@ -118,8 +124,11 @@ def _number(value, file, fieldname, positive=False) -> float:
 
 def check_name(name: str, file, fieldname: str) -> str:
     """Sensor names become folder and metric names: refuse anything that could act as a path."""
-    if not isinstance(name, str) or not name or name in (".", "..") or any(c in name for c in "/\\\0:") or name.strip() != name:
-        raise RigFormatError(file, fieldname, f"invalid sensor name {name!r} (no '/', '\\', ':', '..' or blanks)")
+    if (
+        not isinstance(name, str) or not name or name in (".", "..") or any(c in name for c in "/\\\0:")
+        or name.strip() != name or not name.isprintable()
+    ):
+        raise RigFormatError(file, fieldname, f"invalid sensor name {name!r} (no '/', '\\', ':', '..', control characters or leading/trailing blanks)")
     return name
 
 
@@ -140,7 +149,9 @@ def load_tum(path: Path) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read a TUM trajectory: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comments allowed.
 
     Returns:
-        (stamps (K,), positions (K, 3), unit quaternions x, y, z, w (K, 4)).
+        (stamps (K,), positions (K, 3), unit quaternions x, y, z, w (K, 4)). Quaternions whose norm is within 1e-12
+        of 1 are returned exactly as written (so ``write_tum`` -> ``load_tum`` round-trips bit for bit); the others
+        (norm within 1e-3 of 1, else an error) are renormalised.
     """
     if not path.is_file():
         raise RigFormatError(path, "trajectory", "file not found")
@@ -168,7 +179,8 @@ def load_tum(path: Path) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     if np.any(np.abs(norms - 1.0) > 1e-3):
         bad = int(np.argmax(np.abs(norms - 1.0) > 1e-3)) + 1
         raise RigFormatError(path, f"quaternion of pose {bad}", f"not a unit quaternion (norm {norms[bad - 1]:.6f})")
-    return data[:, 0], data[:, 1:4], data[:, 4:8] / norms[:, None]
+    quats = np.where(np.abs(norms - 1.0)[:, None] > 1e-12, data[:, 4:8] / norms[:, None], data[:, 4:8])
+    return data[:, 0], data[:, 1:4], quats
 
 
 def write_tum(path: Path, stamps, positions, quats_xyzw, header: str = "timestamp tx ty tz qx qy qz qw") -> None:
@@ -265,7 +277,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
         raise RigFormatError(file, "sensors", "must be a non-empty object")
     sensors = {check_name(n, file, f"sensors.{n}"): _parse_sensor(n, s, file) for n, s in raw["sensors"].items()}
     ref = raw["reference_sensor"]
-    if ref not in sensors:
+    if not isinstance(ref, str) or ref not in sensors:
         raise RigFormatError(file, "reference_sensor", f"{ref!r} is not one of the sensors {sorted(sensors)}")
     if not np.allclose(sensors[ref].T_ref_sensor, np.eye(4), atol=1e-6):
         raise RigFormatError(file, f"sensors.{ref}.T_ref_sensor", "the reference sensor's extrinsic must be the identity")
@@ -287,7 +299,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
         unknown = sorted(set(fr) - {"sensor", "timestamp", "file_path"})
         if unknown:
             raise RigFormatError(file, f"{where}.{unknown[0]}", "unknown key")
-        if fr["sensor"] not in sensors:
+        if not isinstance(fr["sensor"], str) or fr["sensor"] not in sensors:
             raise RigFormatError(file, f"{where}.sensor", f"unknown sensor {fr['sensor']!r}")
         stamp = _number(fr["timestamp"], file, f"{where}.timestamp")
         fpath = resolve_in(root, fr["file_path"], file, f"{where}.file_path")
@@ -380,10 +392,12 @@ def load_calibration(path: Path | str) -> Calibration:
         raw = json.loads(file.read_text())
     except json.JSONDecodeError as err:
         raise RigFormatError(file, f"line {err.lineno}", f"invalid JSON: {err.msg}") from None
+    if not isinstance(raw, dict):
+        raise RigFormatError(file, "(top level)", "must be a JSON object")
     for key in ("reference_sensor", "sensors"):
         if key not in raw:
             raise RigFormatError(file, key, "missing")
-    if not isinstance(raw["sensors"], dict) or raw["reference_sensor"] not in raw["sensors"]:
+    if not isinstance(raw["sensors"], dict) or not isinstance(raw["reference_sensor"], str) or raw["reference_sensor"] not in raw["sensors"]:
         raise RigFormatError(file, "reference_sensor", f"{raw['reference_sensor']!r} is not in sensors")
     transforms, offsets = {}, {}
     for name, entry in raw["sensors"].items():
@@ -427,13 +441,15 @@ def load_lidar_scan(path: Path | str, min_range: float = 0.0) -> Tuple[np.ndarra
             key = "points"
         else:
             raise RigFormatError(file, "file_path", f"unsupported LiDAR file type {suffix!r}")
-    except (ValueError, OSError) as err:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as err:
         if isinstance(err, RigFormatError):
             raise
         raise RigFormatError(file, "data", f"unreadable ({err})") from None
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise RigFormatError(file, key, f"expected an (N, 3) array, got shape {points.shape}")
+    if points.dtype.kind not in "fiu":
+        raise RigFormatError(file, key, f"expected real numbers (float or integer), got dtype {points.dtype}")
     if times is not None:
         times = np.asarray(times, dtype=np.float64)
         if times.shape != (points.shape[0],):

@@ -1,0 +1,16 @@
+# The two set-up commands of the README. Both install into .venv/ first (cached).
+.PHONY: install demo test test-fast bench
+
+install:
+	./scripts/install.sh
+
+# Built-in demo: synthetic rig with perturbed priors -> calibration -> before/after error table.
+demo: install
+	.venv/bin/moisst-synth demo/rig --perturb paper --overwrite
+	.venv/bin/moisst-calibrate demo/rig --output-dir demo/calibration --method moisst-lite
+
+test: install
+	.venv/bin/python -m pytest -q tests
+
+test-fast: install
+	.venv/bin/python -m pytest -q -m "not slow" tests
