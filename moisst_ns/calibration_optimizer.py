@@ -177,5 +177,6 @@ class CalibrationOptimizer(CameraOptimizer):
 
     def get_param_groups(self, param_groups: dict) -> None:
         if self.rig is not None:
-            param_groups["calibration_extrinsics"] = [self.rig.rotvec, self.rig.translation]
+            param_groups["calibration_rotation"] = [self.rig.rotvec]
+            param_groups["calibration_translation"] = [self.rig.translation]
             param_groups["calibration_time"] = [self.rig.time_offset]

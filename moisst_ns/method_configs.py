@@ -63,7 +63,8 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         model.calibration_warmup_steps = int(0.2 * steps)
         model.reference_only_warmup = True
         model.coarse_to_fine = (int(0.2 * steps), int(0.7 * steps))
-    calib_lr = 3e-3 if lite else 1e-3
+    # Calibration rates (Adam moves a parameter at most ~lr per step): radians, metres, seconds.
+    rot_lr, trans_lr, time_lr = (3e-3, 1e-2, 3e-3) if lite else (1e-3, 3e-3, 1e-3)
     return TrainerConfig(
         method_name=method,
         steps_per_eval_batch=10**9 if lite else 500,
@@ -88,8 +89,9 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
             "proposal_networks": _adam_decay(1e-2, steps, weight_decay=1e-6),
             "fields": _adam_decay(1e-2, steps, weight_decay=1e-6),
             "hash_grids": _adam_decay(1e-2, steps, weight_decay=1e-6),
-            "calibration_extrinsics": _adam_decay(calib_lr, steps),
-            "calibration_time": _adam_decay(calib_lr, steps),
+            "calibration_rotation": _adam_decay(rot_lr, steps),
+            "calibration_translation": _adam_decay(trans_lr, steps),
+            "calibration_time": _adam_decay(time_lr, steps),
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 12 if lite else 1 << 15, websocket_host="127.0.0.1"),
         vis="viewer",

@@ -596,10 +596,10 @@ def test_npz_without_points(tmp_path):
     scan_error(tmp_path / "p.npz", "points", "missing array")
 
 
-@pytest.mark.parametrize("floats", [5, 4 * 7 + 3])
-def test_bin_size_not_multiple_of_four(tmp_path, floats):
-    np.ones(floats, np.float32).tofile(tmp_path / "k.bin")
-    scan_error(tmp_path / "k.bin", "data", f"{floats} floats is not a multiple of 4")
+@pytest.mark.parametrize("size", [5 * 4, (4 * 7 + 3) * 4, 8 * 4 + 1, 3])
+def test_bin_size_not_multiple_of_four_floats(tmp_path, size):
+    (tmp_path / "k.bin").write_bytes(np.ones(size // 4 + 1, np.float32).tobytes()[:size])
+    scan_error(tmp_path / "k.bin", "data", rf"{size} bytes is not a multiple of 16 \(4 floats\)")
 
 
 def test_nan_points_dropped_and_counted(tmp_path):

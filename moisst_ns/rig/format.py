@@ -427,9 +427,12 @@ def load_lidar_scan(path: Path | str, min_range: float = 0.0) -> Tuple[np.ndarra
             points = np.load(file, allow_pickle=False)
             key = "array"
         elif suffix == ".bin":
+            size = file.stat().st_size
+            if size % 16:  # np.fromfile would silently drop a partial trailing float
+                raise RigFormatError(
+                    file, "data", f"KITTI .bin must hold float32 x,y,z,intensity records; {size} bytes is not a multiple of 16 (4 floats)"
+                )
             flat = np.fromfile(file, dtype=np.float32)
-            if flat.size % 4:
-                raise RigFormatError(file, "data", f"KITTI .bin must hold float32 x,y,z,intensity; {flat.size} floats is not a multiple of 4")
             points = flat.reshape(-1, 4)[:, :3]
             key = "data"
         elif suffix == ".npz":

@@ -1,0 +1,161 @@
+"""``MoisstDataManager``: camera pixels and LiDAR points in one batch (paper III-A.3, III-C).
+
+Camera rays come from nerfstudio's ``VanillaDataManager`` (posed with the priors; the calibration optimiser
+re-poses them). LiDAR rays are appended to the same ``RayBundle``: each carries, in its metadata, the point in the
+LiDAR frame, the LiDAR's sensor index and the point's own-clock time (frame stamp + per-point offset), and the
+calibration optimiser regenerates its origin ``T_r(t + delta_L) @ ref_T_L`` and direction every step. The target
+is the measured range (``batch["lidar_range"]``, model units).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Tuple, Type
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from moisst_ns.rig.format import load_lidar_scan
+
+LIDAR_KEYS = ("is_lidar", "lidar_point", "lidar_stamp", "lidar_sensor")
+
+
+@dataclass
+class MoisstDataManagerConfig(VanillaDataManagerConfig):
+    """Camera pixels plus LiDAR points per step."""
+
+    _target: Type = field(default_factory=lambda: MoisstDataManager)
+    lidar_rays_per_batch: int = 256
+    """LiDAR points sampled per step (on top of ``train_num_rays_per_batch`` camera pixels); 0 disables LiDAR."""
+    lidar_min_range: float = 1.0
+    """Points closer than this (metres) are dropped (the vehicle itself)."""
+    lidar_max_range: float = 80.0
+    """Points farther than this (metres) are dropped."""
+
+
+def concat_ray_bundles(first: RayBundle, second: RayBundle) -> RayBundle:
+    """Concatenate two flat ray bundles field by field (metadata keys must match)."""
+
+    def cat(a, b):
+        if a is None and b is None:
+            return None
+        return torch.cat([a, b], dim=0)
+
+    return RayBundle(
+        origins=cat(first.origins, second.origins),
+        directions=cat(first.directions, second.directions),
+        pixel_area=cat(first.pixel_area, second.pixel_area),
+        camera_indices=cat(first.camera_indices, second.camera_indices),
+        nears=cat(first.nears, second.nears),
+        fars=cat(first.fars, second.fars),
+        metadata={k: cat(first.metadata[k], second.metadata[k]) for k in first.metadata},
+        times=cat(first.times, second.times),
+    )
+
+
+class MoisstDataManager(VanillaDataManager):
+    """VanillaDataManager + LiDAR points (rays are (re)built from the calibration by the model)."""
+
+    config: MoisstDataManagerConfig
+
+    def __init__(self, config: MoisstDataManagerConfig, *args, **kwargs):
+        super().__init__(config, *args, **kwargs)
+        self.rig = self.train_dataparser_outputs.metadata["moisst_rig"]
+        self.lidar_points, self.lidar_stamps, self.lidar_sensor = load_lidar_points(
+            self.rig, self.train_dataparser_outputs.metadata["moisst_rig_root"], config.lidar_min_range, config.lidar_max_range
+        )
+        self.lidar_generator = torch.Generator().manual_seed(int(kwargs.get("seed", 0)) + 12345)
+
+    @property
+    def has_lidar(self) -> bool:
+        return self.config.lidar_rays_per_batch > 0 and self.lidar_points.shape[0] > 0
+
+    def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
+        ray_bundle, batch = super().next_train(step)
+        num_camera = len(ray_bundle)
+        batch["num_camera_rays"] = num_camera
+        if not self.has_lidar:
+            return ray_bundle, batch
+        device = ray_bundle.origins.device
+        ray_bundle.metadata.update(lidar_placeholder(num_camera, device))
+        pick = torch.randint(self.lidar_points.shape[0], (self.config.lidar_rays_per_batch,), generator=self.lidar_generator)
+        points = self.lidar_points[pick].to(device)
+        lidar = lidar_ray_bundle(points, self.lidar_stamps[pick].to(device), self.lidar_sensor[pick].to(device), ray_bundle)
+        batch["lidar_range"] = points.norm(dim=-1) * float(self.rig.extra["world_scale"])
+        batch["lidar_sensor"] = self.lidar_sensor[pick].to(device)
+        return concat_ray_bundles(ray_bundle, lidar), batch
+
+
+def lidar_placeholder(num: int, device) -> Dict[str, Tensor]:
+    """Metadata columns of camera rays so they concatenate with LiDAR rays."""
+    return {
+        "is_lidar": torch.zeros(num, 1, dtype=torch.bool, device=device),
+        "lidar_point": torch.zeros(num, 3, device=device),
+        "lidar_stamp": torch.zeros(num, 1, dtype=torch.float64, device=device),
+        "lidar_sensor": torch.zeros(num, 1, dtype=torch.long, device=device),
+    }
+
+
+def lidar_ray_bundle(
+    points: Float[Tensor, "num 3"], stamps: Float[Tensor, "num"], sensor: Tensor, like: RayBundle
+) -> RayBundle:
+    """LiDAR rays whose geometry is filled in by the calibration optimiser (placeholders here)."""
+    num = points.shape[0]
+    metadata = {
+        "is_lidar": torch.ones(num, 1, dtype=torch.bool, device=points.device),
+        "lidar_point": points,
+        "lidar_stamp": stamps[:, None],
+        "lidar_sensor": sensor[:, None],
+    }
+    for key, value in like.metadata.items():
+        if key not in metadata:
+            metadata[key] = torch.ones(num, *value.shape[1:], dtype=value.dtype, device=value.device) if key == "directions_norm" else torch.zeros(num, *value.shape[1:], dtype=value.dtype, device=value.device)
+    return RayBundle(
+        origins=torch.zeros(num, 3, device=points.device),
+        directions=points / points.norm(dim=-1, keepdim=True),
+        pixel_area=torch.full((num, 1), float(like.pixel_area.mean()), device=points.device),
+        camera_indices=torch.zeros(num, 1, dtype=torch.long, device=points.device),
+        nears=None if like.nears is None else torch.zeros(num, 1, device=points.device),
+        fars=None if like.fars is None else torch.zeros(num, 1, device=points.device),
+        metadata=metadata,
+        times=None if like.times is None else torch.zeros(num, 1, device=points.device),
+    )
+
+
+def load_lidar_points(rig, root, min_range: float, max_range: float):
+    """All LiDAR points of the rig: (P, 3) float32 points, (P,) float64 own-clock times since t0, (P,) sensor ids."""
+    from pathlib import Path
+
+    from moisst_ns.rig.format import RigFormatError, load_rig
+
+    full = load_rig(Path(root), check_files=False)
+    points, stamps, sensors = [], [], []
+    dropped_total = 0
+    for frame in full.frames:
+        if full.sensors[frame.sensor].type != "lidar":
+            continue
+        pts, times, dropped = load_lidar_scan(full.root / frame.file_path, min_range=min_range)
+        keep = np.linalg.norm(pts, axis=1) <= max_range
+        if not keep.any():
+            raise RigFormatError(full.root / frame.file_path, "points", f"no points left within {min_range}-{max_range} m (range filtering)")
+        dropped_total += dropped
+        pts = pts[keep]
+        offs = np.zeros(len(pts)) if times is None else times[keep]
+        points.append(pts)
+        stamps.append(frame.timestamp - rig.t0 + offs)
+        sensors.append(np.full(len(pts), rig.sensor_names.index(frame.sensor)))
+    if dropped_total:
+        CONSOLE.print(f"[yellow]LiDAR: dropped {dropped_total} points with NaN/inf coordinates")
+    if not points:
+        return torch.zeros(0, 3), torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.long)
+    return (
+        torch.from_numpy(np.concatenate(points)).float(),
+        torch.from_numpy(np.concatenate(stamps)).double(),
+        torch.from_numpy(np.concatenate(sensors)).long(),
+    )

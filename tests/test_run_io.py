@@ -1,0 +1,97 @@
+"""A finished run opens again (torch >= 2.6 checkpoints), ns-export cameras writes calibrated poses, CLI errors."""
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
+from moisst_ns.rig.format import load_calibration
+from moisst_ns.synth import SynthConfig, make_rig
+
+BIN = Path(sys.executable).parent
+
+
+def tree_hash(folder: Path) -> str:
+    digest = hashlib.sha256()
+    for path in sorted(folder.rglob("*")):
+        if path.is_file():
+            digest.update(str(path.relative_to(folder)).encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("run")
+    rig = root / "rig"
+    make_rig(SynthConfig(out=rig, width=48, height=36, frames=6, perturb="paper", lidar=False))
+    before = tree_hash(rig)
+    config_path = run_calibration(CalibrateConfig(dataset=rig, output_dir=root / "out", max_num_iterations=12, seed=3))
+    return rig, root / "out", config_path, before
+
+
+def test_run_writes_calibration_and_leaves_dataset_untouched(short_run):
+    rig, out, config_path, before = short_run
+    assert tree_hash(rig) == before
+    calib = load_calibration(out / "calibration.json")
+    truth = load_calibration(rig / "ground_truth.json")
+    assert set(calib.T_ref_sensor) == set(truth.T_ref_sensor)
+    assert np.allclose(calib.T_ref_sensor[calib.reference_sensor], np.eye(4))
+    assert config_path.is_file() and (config_path.parent / "calibration_history.csv").is_file()
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["errors_after"]) == {"cam_front_right", "cam_left"}
+
+
+def test_saved_run_loads_and_gives_the_same_calibration(short_run):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    rig, out, config_path, _ = short_run
+    _, pipeline, _, step = eval_setup(config_path, test_mode="inference")
+    assert step == 11
+    loaded = pipeline.model.camera_optimizer.rig.estimate()
+    written = load_calibration(out / "calibration.json")
+    for name in written.T_ref_sensor:
+        assert np.allclose(loaded.T_ref_sensor[name], written.T_ref_sensor[name], atol=1e-9)
+        assert loaded.time_offset[name] == pytest.approx(written.time_offset[name], abs=1e-12)
+
+
+def test_ns_export_cameras_writes_calibrated_poses(short_run, tmp_path):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    rig, out, config_path, before = short_run
+    subprocess.run([str(BIN / "ns-export"), "cameras", "--load-config", str(config_path), "--output-dir", str(tmp_path)], check=True, capture_output=True)
+    frames = json.loads((tmp_path / "transforms_train.json").read_text())
+    _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
+    opt = pipeline.model.camera_optimizer
+    with torch.no_grad():
+        expected = opt.frame_c2w(torch.arange(len(frames)))[:, :3, :4].numpy()
+        prior = opt.prior_c2w[:, :3, :4].numpy()
+    got = np.array([f["transform"] for f in frames])
+    assert np.allclose(got, expected, atol=1e-5)
+    moved = np.abs(got - prior).max(axis=(1, 2))
+    non_ref = opt.frame_sensor.numpy() != opt.rig.data.reference_index
+    assert np.all(moved[~non_ref] < 1e-6) and np.all(moved[non_ref] > 1e-5)
+    assert tree_hash(rig) == before
+
+
+def test_calibrate_cli_errors_are_one_line(tmp_path, short_run):
+    rig = short_run[0]
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "rig.json").write_text("{}")
+    result = subprocess.run([str(BIN / "moisst-calibrate"), str(bad), "--output-dir", str(tmp_path / "o")], capture_output=True, text=True)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert lines[-1] == f"moisst-calibrate: error: {bad / 'rig.json'}: format: missing"
+    as_file = tmp_path / "file"
+    as_file.write_text("x")
+    result = subprocess.run([str(BIN / "moisst-calibrate"), str(rig), "--output-dir", str(as_file)], capture_output=True, text=True)
+    assert result.returncode == 2 and "is a file" in result.stderr.strip().splitlines()[-1]
+    result = subprocess.run([str(BIN / "moisst-calibrate"), str(rig), "--output-dir", str(rig / "x")], capture_output=True, text=True)
+    assert result.returncode == 2 and "inside the dataset" in result.stderr
