@@ -9,7 +9,7 @@ and ``ns-export cameras`` writes calibrated per-frame poses without further glue
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Literal, Optional, Type, Union
+from typing import Dict, Literal, Optional, Tuple, Type, Union
 
 import numpy as np
 import torch
@@ -122,16 +122,57 @@ class CalibrationOptimizer(CameraOptimizer):
         return delta[:, :3, :4].float()
 
     def apply_to_raybundle(self, raybundle: RayBundle) -> None:
-        """Regenerate training rays from the current calibration (paper Fig. 2): exact re-posing of each ray."""
+        """Regenerate training rays from the current calibration (paper Fig. 2).
+
+        Camera rays are re-posed exactly (origin to the calibrated centre, direction rotated by
+        ``R_calibrated R_prior^T``). LiDAR rays (``metadata["is_lidar"]``) are built from scratch: origin
+        ``T_r(t + delta_L) @ ref_T_L`` at the point's own time, direction through the point.
+        """
         if self.rig is None or raybundle.camera_indices is None:
             return
-        idx = raybundle.camera_indices.reshape(-1).long()
+        is_lidar = raybundle.metadata.get("is_lidar")
+        if is_lidar is None or not bool(is_lidar.any()):
+            raybundle.origins, raybundle.directions = self.camera_rays(raybundle.camera_indices, raybundle.origins, raybundle.directions)
+            return
+        cam = ~is_lidar[:, 0]
+        origins, directions = raybundle.origins.clone(), raybundle.directions.clone()
+        if bool(cam.any()):
+            origins[cam], directions[cam] = self.camera_rays(raybundle.camera_indices[cam], raybundle.origins[cam], raybundle.directions[cam])
+        lid = is_lidar[:, 0]
+        meta = raybundle.metadata
+        origins[lid], directions[lid] = self.lidar_rays(meta["lidar_sensor"][lid, 0], meta["lidar_stamp"][lid, 0], meta["lidar_point"][lid])
+        raybundle.origins, raybundle.directions = origins, directions
+
+    def camera_rays(self, camera_indices: Int[Tensor, "num 1"], origins: Float[Tensor, "num 3"], directions: Float[Tensor, "num 3"]):
+        """Re-pose camera rays generated at the prior poses onto the calibrated poses."""
+        idx = camera_indices.reshape(-1).long()
         unique, inverse = torch.unique(idx, return_inverse=True)
         calibrated = self.frame_c2w(unique)
         prior = self.prior_c2w[unique.to(self.prior_c2w.device)]
-        rot = (calibrated[:, :3, :3] @ prior[:, :3, :3].transpose(-1, -2)).to(raybundle.directions)[inverse]
-        raybundle.origins = raybundle.origins - prior[inverse, :3, 3].to(raybundle.origins) + calibrated[inverse, :3, 3].to(raybundle.origins)
-        raybundle.directions = (rot @ raybundle.directions[..., None])[..., 0]
+        rot = (calibrated[:, :3, :3] @ prior[:, :3, :3].transpose(-1, -2)).to(directions)[inverse]
+        new_origins = origins - prior[inverse, :3, 3].to(origins) + calibrated[inverse, :3, 3].to(origins)
+        return new_origins, (rot @ directions[..., None])[..., 0]
+
+    def lidar_rays(
+        self, sensor: Int[Tensor, "num"], stamp: Float[Tensor, "num"], points: Float[Tensor, "num 3"]
+    ) -> Tuple[Float[Tensor, "num 3"], Float[Tensor, "num 3"]]:
+        """LiDAR rays in the model frame: from the LiDAR centre at each point's time, through the point.
+
+        Args:
+            sensor: LiDAR sensor index per point.
+            stamp: own-clock time of each point relative to t0 (frame stamp + per-point offset), float64.
+            points: points in the LiDAR frame, metres.
+
+        Returns:
+            (origins, unit directions) in nerfstudio's normalised world; the range in model units is
+            ``|point| * world_scale``.
+        """
+        assert self.rig is not None
+        pose = self.rig.sensor_poses(sensor, stamp)
+        origins = self.world_scale * (pose[:, :3, 3] - self.world_center)
+        dirs = (pose[:, :3, :3] @ points.to(pose.dtype)[..., None])[..., 0]
+        dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+        return origins.float(), dirs.float()
 
     def apply_to_camera(self, camera: Cameras) -> Tensor:
         """Calibrated camera-to-world (3x4) of a training camera carrying ``metadata["cam_idx"]``."""

@@ -9,7 +9,6 @@ from __future__ import annotations
 import torch
 
 from nerfstudio.configs.base_config import LoggingConfig, MachineConfig, ViewerConfig
-from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
@@ -17,6 +16,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from moisst_ns.calibration_optimizer import CalibrationOptimizerConfig
+from moisst_ns.data.datamanager import MoisstDataManagerConfig
 from moisst_ns.data.dataparser import MoisstRigDataParserConfig
 from moisst_ns.model import MoisstModelConfig
 
@@ -49,6 +49,7 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         average_init_density=0.01,
         camera_optimizer=CalibrationOptimizerConfig(),
         hash_weight_decay_steps=int(0.1 * steps),
+        depth_loss_start=int(0.04 * steps),
     )
     if lite:
         model.num_proposal_samples_per_ray = (64, 32)
@@ -61,6 +62,7 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
             {"hidden_dim": 16, "log2_hashmap_size": 15, "num_levels": 5, "max_res": 256, "use_linear": False},
         ]
         model.calibration_warmup_steps = int(0.2 * steps)
+        model.depth_loss_start = model.calibration_warmup_steps
         model.reference_only_warmup = True
         model.coarse_to_fine = (int(0.2 * steps), int(0.7 * steps))
     # Calibration rates (Adam moves a parameter at most ~lr per step): radians, metres, seconds.
@@ -78,8 +80,9 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         machine=MachineConfig(device_type=device),
         logging=LoggingConfig(steps_per_log=25 if lite else 100),
         pipeline=VanillaPipelineConfig(
-            datamanager=VanillaDataManagerConfig(
+            datamanager=MoisstDataManagerConfig(
                 dataparser=MoisstRigDataParserConfig(),
+                lidar_rays_per_batch=256 if lite else 1024,
                 train_num_rays_per_batch=1024 if lite else 4096,
                 eval_num_rays_per_batch=1024 if lite else 4096,
             ),

@@ -17,6 +17,7 @@ from typing import Dict, List, Optional, Tuple, Type
 from unittest import mock
 
 import torch
+from jaxtyping import Float
 from torch import Tensor, nn
 from torch.nn import Parameter
 
@@ -25,6 +26,7 @@ from nerfstudio.field_components.encodings import HashEncoding
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from moisst_ns.losses import depth_smoothness_loss, dssim_loss
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
 
 
@@ -55,6 +57,19 @@ def hash_level_weights(progress: float, num_levels: int, start_levels: float) ->
     return (1.0 - torch.cos(math.pi * torch.clamp(alpha - k, 0.0, 1.0))) / 2.0
 
 
+def lidar_depth_loss(expected_depth: Float[Tensor, "num_rays"], measured_range: Float[Tensor, "num_rays"]) -> Float[Tensor, ""]:
+    """Paper eq. 7: squared error between the rendered (expected) depth of a LiDAR ray and the measured range.
+
+    Args:
+        expected_depth: volume-rendered expected distance along each unit-direction LiDAR ray.
+        measured_range: the LiDAR's range for that ray, same units.
+
+    Returns:
+        The mean squared error.
+    """
+    return (expected_depth - measured_range.to(expected_depth)).pow(2).mean()
+
+
 @dataclass
 class MoisstModelConfig(NerfactoModelConfig):
     """nerfacto + MOISST rig calibration."""
@@ -72,6 +87,14 @@ class MoisstModelConfig(NerfactoModelConfig):
     ``coarse_to_fine_start_levels`` levels are on, at ``end`` all; (0, 0) disables it."""
     coarse_to_fine_start_levels: float = 2.0
     """Levels fully on at the start of the coarse-to-fine release."""
+    depth_loss_mult: float = 20.0
+    """lambda_D of paper eq. 13: weight of the LiDAR depth loss (L2 on the expected ray depth, model units)."""
+    depth_loss_start: int = 0
+    """Step from which the depth loss applies (paper: after 2 epochs of colour-only training)."""
+    dssim_loss_mult: float = 0.1
+    """lambda_SSIM of paper eq. 13 (needs ``datamanager.patch_size > 1``)."""
+    depth_smoothness_mult: float = 1e-4
+    """lambda_DS of paper eq. 13, RegNeRF's depth smoothness on patches (needs ``datamanager.patch_size > 1``)."""
     calibration_log_every: int = 25
     """Every this many steps, append each sensor's estimate (and errors, with ground truth) to
     ``calibration_history.csv`` in the run folder."""
@@ -102,6 +125,7 @@ class MoisstModel(NerfactoModel):
             else:
                 for enc in self._hash_encodings:
                     enc.register_forward_hook(self._mask_levels)
+        self._step = 0
         self._warmup_active = self.config.calibration_warmup_steps > 0
         if self._warmup_active:
             self.camera_optimizer.set_trainable(False)
@@ -115,6 +139,7 @@ class MoisstModel(NerfactoModel):
         return output * weights.to(output).repeat_interleave(module.features_per_level)
 
     def _update_schedule(self, step: int) -> None:
+        self._step = step
         start, end = self.config.coarse_to_fine
         if (start, end) != (0, 0) and self._hash_encodings:
             progress = 1.0 if step >= end else max(step - start, 0) / max(end - start, 1)
@@ -178,16 +203,47 @@ class MoisstModel(NerfactoModel):
 
     # --- losses and metrics --------------------------------------------------------------------------------------
 
+    @staticmethod
+    def _split(outputs: Dict[str, Tensor], batch: Dict) -> Tuple[Dict[str, Tensor], Optional[slice]]:
+        """Camera-ray view of the outputs (for nerfacto's colour loss/metrics) and the LiDAR rays' slice."""
+        num = batch.get("num_camera_rays")
+        if num is None or outputs["rgb"].shape[0] == num:
+            return outputs, None
+        camera = dict(outputs)
+        for key in ("rgb", "accumulation", "depth", "expected_depth"):
+            camera[key] = outputs[key][:num]
+        return camera, slice(num, None)
+
+    def get_metrics_dict(self, outputs, batch):
+        camera, lidar = self._split(outputs, batch)
+        metrics = super().get_metrics_dict(camera, batch)
+        if lidar is not None and "lidar_range" in batch:
+            error = outputs["expected_depth"][lidar, 0].detach() - batch["lidar_range"]
+            metrics["lidar_depth_rmse_m"] = error.pow(2).mean().sqrt() / float(self.camera_optimizer.world_scale)
+        return metrics
+
     def get_loss_dict(self, outputs, batch, metrics_dict=None):
+        camera, lidar = self._split(outputs, batch)
         if self.training and self._warmup_active and self.config.reference_only_warmup:
             keep = self._reference_rays(batch)
             if keep is not None and keep.any():
-                outputs = dict(outputs)
                 batch = dict(batch)
                 batch["image"] = batch["image"][keep]
-                for key in ("rgb", "accumulation"):
-                    outputs[key] = outputs[key][keep.to(outputs[key].device)]
-        return super().get_loss_dict(outputs, batch, metrics_dict)
+                for key in ("rgb", "accumulation", "expected_depth"):
+                    camera[key] = camera[key][keep.to(camera[key].device)]
+        loss_dict = super().get_loss_dict(camera, batch, metrics_dict)
+        patch = int(batch.get("patch_size", 1))
+        if self.training and patch > 1 and camera["rgb"].shape[0] % (patch * patch) == 0 and camera["rgb"].shape[0] > 0:
+            shape = (-1, patch, patch)
+            if self.config.dssim_loss_mult > 0:
+                image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+                loss_dict["dssim_loss"] = self.config.dssim_loss_mult * dssim_loss(camera["rgb"].view(*shape, 3), image[..., :3].view(*shape, 3))
+            if self.config.depth_smoothness_mult > 0:
+                depth = camera["expected_depth"].view(*shape)
+                loss_dict["depth_smoothness_loss"] = self.config.depth_smoothness_mult * depth_smoothness_loss(depth)
+        if self.training and lidar is not None and "lidar_range" in batch and self._step >= self.config.depth_loss_start:
+            loss_dict["depth_loss"] = self.config.depth_loss_mult * lidar_depth_loss(outputs["expected_depth"][lidar, 0], batch["lidar_range"])
+        return loss_dict
 
     def _reference_rays(self, batch) -> Optional[Tensor]:
         rig = self.camera_optimizer.rig

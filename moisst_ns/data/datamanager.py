@@ -80,6 +80,7 @@ class MoisstDataManager(VanillaDataManager):
         ray_bundle, batch = super().next_train(step)
         num_camera = len(ray_bundle)
         batch["num_camera_rays"] = num_camera
+        batch["patch_size"] = self.config.patch_size
         if not self.has_lidar:
             return ray_bundle, batch
         device = ray_bundle.origins.device

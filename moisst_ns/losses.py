@@ -1,0 +1,48 @@
+"""The patch losses of paper eq. 13 (DSSIM and depth smoothness), as pure torch functions.
+
+Patches come from nerfstudio's ``PatchPixelSampler`` (``datamanager.patch_size > 1``), which orders the camera
+rays of a batch as (num_patches, patch, patch).
+"""
+
+from __future__ import annotations
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+
+def dssim_loss(
+    pred: Float[Tensor, "num_patches patch patch 3"], target: Float[Tensor, "num_patches patch patch 3"], c1: float = 0.01**2, c2: float = 0.03**2
+) -> Float[Tensor, ""]:
+    """Structural dissimilarity ``(1 - SSIM) / 2`` of each patch (one SSIM window = the whole patch), averaged.
+
+    Args:
+        pred: rendered colours in [0, 1].
+        target: image colours in [0, 1].
+        c1: SSIM luminance constant ((0.01 L)^2, L = 1).
+        c2: SSIM contrast constant ((0.03 L)^2).
+
+    Returns:
+        Mean DSSIM over patches and channels, in [0, 1].
+    """
+    dims = (1, 2)
+    mu_p, mu_t = pred.mean(dims), target.mean(dims)
+    var_p = pred.var(dims, unbiased=False)
+    var_t = target.var(dims, unbiased=False)
+    cov = ((pred - mu_p[:, None, None]) * (target - mu_t[:, None, None])).mean(dims)
+    ssim = ((2 * mu_p * mu_t + c1) * (2 * cov + c2)) / ((mu_p**2 + mu_t**2 + c1) * (var_p + var_t + c2))
+    return ((1.0 - ssim) / 2.0).mean()
+
+
+def depth_smoothness_loss(depth: Float[Tensor, "num_patches patch patch"]) -> Float[Tensor, ""]:
+    """RegNeRF's depth smoothness: squared differences between horizontally and vertically adjacent depths.
+
+    Args:
+        depth: rendered depth of each patch.
+
+    Returns:
+        Sum over neighbours within a patch, averaged over patches.
+    """
+    dx = (depth[:, :, 1:] - depth[:, :, :-1]).pow(2).sum((1, 2))
+    dy = (depth[:, 1:, :] - depth[:, :-1, :]).pow(2).sum((1, 2))
+    return (dx + dy).mean()
