@@ -63,6 +63,7 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         ]
         model.calibration_warmup_steps = int(0.2 * steps)
         model.depth_loss_start = model.calibration_warmup_steps
+        model.registration_steps = int(0.7 * steps)
         model.reference_only_warmup = True
         model.coarse_to_fine = (int(0.2 * steps), int(0.7 * steps))
     # Calibration rates (Adam moves a parameter at most ~lr per step): radians, metres, seconds.

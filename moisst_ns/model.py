@@ -98,6 +98,10 @@ class MoisstModelConfig(NerfactoModelConfig):
     calibration_log_every: int = 25
     """Every this many steps, append each sensor's estimate (and errors, with ground truth) to
     ``calibration_history.csv`` in the run folder."""
+    registration_steps: int = 0
+    """Until this step, rays of non-reference sensors do not update the scene (their losses move only their
+    calibration): the scene is built from the sensor whose poses are known (and the others register against it,
+    as in SOAC), so it cannot absorb their miscalibration. 0 disables it."""
     hash_weight_decay_steps: int = 0
     """Step at which the hash grids' weight decay (set on the ``hash_grids`` optimiser) is removed (paper
     III-C.3: kept for the first epochs, then removed so finer detail can be learned)."""
@@ -126,6 +130,7 @@ class MoisstModel(NerfactoModel):
                 for enc in self._hash_encodings:
                     enc.register_forward_hook(self._mask_levels)
         self._step = 0
+        self._detached_pass = False
         self._warmup_active = self.config.calibration_warmup_steps > 0
         if self._warmup_active:
             self.camera_optimizer.set_trainable(False)
@@ -200,6 +205,44 @@ class MoisstModel(NerfactoModel):
                 writer.writerow(columns)
             for name, values in summary.items():
                 writer.writerow([step, name] + [f"{values[c]:.9g}" if c in values else "" for c in columns[2:]])
+
+    # --- registration: non-reference rays see a detached scene -------------------------------------------------
+
+    def _ray_sensor(self, ray_bundle) -> Tensor:
+        """Sensor index of every ray (camera rays through their frame, LiDAR rays from their metadata)."""
+        opt = self.camera_optimizer
+        sensor = opt.frame_sensor[ray_bundle.camera_indices.reshape(-1).long().to(opt.frame_sensor.device)]
+        is_lidar = ray_bundle.metadata.get("is_lidar")
+        if is_lidar is not None:
+            sensor = torch.where(is_lidar[:, 0], ray_bundle.metadata["lidar_sensor"][:, 0].to(sensor), sensor)
+        return sensor
+
+    def get_outputs(self, ray_bundle):
+        if not (self.training and self._step < self.config.registration_steps) or self._detached_pass or self.camera_optimizer.rig is None:
+            return super().get_outputs(ray_bundle)
+        reference = self._ray_sensor(ray_bundle) == self.camera_optimizer.rig.data.reference_index
+        if bool(reference.all()) or not bool(reference.any()):
+            return super().get_outputs(ray_bundle)
+        ref_idx, other_idx = torch.nonzero(reference)[:, 0], torch.nonzero(~reference)[:, 0]
+        outputs_ref = super().get_outputs(ray_bundle[ref_idx])
+        detached = {
+            name: p.detach()
+            for name, p in self.named_parameters()
+            if name.startswith(("field.", "proposal_networks.")) and "embedding_appearance" not in name
+        }
+        self._detached_pass = True
+        try:
+            outputs_other = torch.func.functional_call(self, detached, (ray_bundle[other_idx],), strict=False)
+        finally:
+            self._detached_pass = False
+        merged = dict(outputs_ref)
+        for key, value in outputs_ref.items():
+            if isinstance(value, Tensor) and key in outputs_other and value.shape[0] == ref_idx.shape[0]:
+                full = value.new_zeros((len(ray_bundle),) + tuple(value.shape[1:]))
+                full[ref_idx] = value
+                full[other_idx] = outputs_other[key].to(value)
+                merged[key] = full
+        return merged
 
     # --- losses and metrics --------------------------------------------------------------------------------------
 

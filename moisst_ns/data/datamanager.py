@@ -37,6 +37,10 @@ class MoisstDataManagerConfig(VanillaDataManagerConfig):
     """Points closer than this (metres) are dropped (the vehicle itself)."""
     lidar_max_range: float = 80.0
     """Points farther than this (metres) are dropped."""
+    lidar_reference_view_only: bool = True
+    """Keep only the points inside the reference camera's field of view (by the priors), so LiDAR rays land
+    where the scene is observed by the sensor whose poses are known; a 360 degree scan otherwise mostly hits
+    space no camera constrains. Ignored when the reference sensor is a LiDAR."""
 
 
 def concat_ray_bundles(first: RayBundle, second: RayBundle) -> RayBundle:
@@ -70,6 +74,11 @@ class MoisstDataManager(VanillaDataManager):
         self.lidar_points, self.lidar_stamps, self.lidar_sensor = load_lidar_points(
             self.rig, self.train_dataparser_outputs.metadata["moisst_rig_root"], config.lidar_min_range, config.lidar_max_range
         )
+        if config.lidar_reference_view_only and self.lidar_points.shape[0] > 0:
+            keep = reference_view_mask(self.rig, self.train_dataparser_outputs.metadata["moisst_rig_root"], self.lidar_points, self.lidar_sensor)
+            if keep is not None and bool(keep.any()):
+                CONSOLE.print(f"LiDAR: {int(keep.sum())} of {keep.numel()} points inside the reference camera's view")
+                self.lidar_points, self.lidar_stamps, self.lidar_sensor = self.lidar_points[keep], self.lidar_stamps[keep], self.lidar_sensor[keep]
         self.lidar_generator = torch.Generator().manual_seed(int(kwargs.get("seed", 0)) + 12345)
 
     @property
@@ -127,6 +136,26 @@ def lidar_ray_bundle(
         metadata=metadata,
         times=None if like.times is None else torch.zeros(num, 1, device=points.device),
     )
+
+
+def reference_view_mask(rig, root, points: Tensor, sensor: Tensor):
+    """Points that fall inside the reference camera's image when moved into its frame with the prior extrinsics
+    (None when the reference is not a camera)."""
+    from pathlib import Path
+
+    from moisst_ns.rig.format import load_rig
+
+    full = load_rig(Path(root), check_files=False)
+    ref = full.sensors[full.reference_sensor]
+    if ref.type != "camera":
+        return None
+    k = ref.intrinsics
+    ext = torch.as_tensor(rig.prior_extrinsics, dtype=torch.float32)[sensor]  # ref_T_lidar per point
+    p_ref = (ext[:, :3, :3] @ points[..., None])[..., 0] + ext[:, :3, 3]
+    z = p_ref[:, 2]
+    u = k["fl_x"] * p_ref[:, 0] / z.clamp_min(1e-6) + k["cx"]
+    v = k["fl_y"] * p_ref[:, 1] / z.clamp_min(1e-6) + k["cy"]
+    return (z > 0.5) & (u >= 0) & (u < k["w"]) & (v >= 0) & (v < k["h"])
 
 
 def load_lidar_points(rig, root, min_range: float, max_range: float):
