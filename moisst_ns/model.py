@@ -158,9 +158,7 @@ class MoisstModel(NerfactoModel):
         callbacks.append(
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self._update_schedule, update_every_num_iters=1)
         )
-        callbacks.append(
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: self.camera_optimizer.project(), update_every_num_iters=1)
-        )
+        callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_step, update_every_num_iters=1))
         trainer = training_callback_attributes.trainer
         if trainer is not None and self.config.calibration_log_every > 0:
             history = Path(trainer.base_dir) / "calibration_history.csv"
@@ -192,6 +190,16 @@ class MoisstModel(NerfactoModel):
         }
         self.camera_optimizer.get_param_groups(param_groups=groups)
         return groups
+
+    def _after_step(self, step: int) -> None:
+        """Stop on non-finite calibration parameters (naming the sensor and step), then apply the bounds."""
+        rig = self.camera_optimizer.rig
+        if rig is not None:
+            bad = ~(torch.isfinite(rig.rotvec).all(-1) & torch.isfinite(rig.translation).all(-1) & torch.isfinite(rig.time_offset))
+            if bool(bad.any()):
+                names = [rig.data.sensor_names[i] for i in torch.nonzero(bad)[:, 0].tolist()]
+                raise FloatingPointError(f"step {step}: the calibration of sensor(s) {', '.join(names)} became NaN/inf; stopping (nothing written)")
+        self.camera_optimizer.project()
 
     def log_calibration(self, path: Path, step: int) -> None:
         """Append the current estimate of every non-reference sensor to the history CSV."""
@@ -286,6 +294,10 @@ class MoisstModel(NerfactoModel):
                 loss_dict["depth_smoothness_loss"] = self.config.depth_smoothness_mult * depth_smoothness_loss(depth)
         if self.training and lidar is not None and "lidar_range" in batch and self._step >= self.config.depth_loss_start:
             loss_dict["depth_loss"] = self.config.depth_loss_mult * lidar_depth_loss(outputs["expected_depth"][lidar, 0], batch["lidar_range"])
+        if self.training:
+            for name, value in loss_dict.items():
+                if not bool(torch.isfinite(value).all()):
+                    raise FloatingPointError(f"step {self._step}: loss {name} is NaN/inf; stopping (nothing written)")
         return loss_dict
 
     def _reference_rays(self, batch) -> Optional[Tensor]:

@@ -95,3 +95,27 @@ def test_calibrate_cli_errors_are_one_line(tmp_path, short_run):
     assert result.returncode == 2 and "is a file" in result.stderr.strip().splitlines()[-1]
     result = subprocess.run([str(BIN / "moisst-calibrate"), str(rig), "--output-dir", str(rig / "x")], capture_output=True, text=True)
     assert result.returncode == 2 and "inside the dataset" in result.stderr
+
+
+def test_same_seed_same_calibration(short_run, tmp_path):
+    """Determinism (issue 7): the same dataset, seed and method give the same calibration.json."""
+    rig, out, _, _ = short_run
+    run_calibration(CalibrateConfig(dataset=rig, output_dir=tmp_path / "again", max_num_iterations=12, seed=3))
+    first = load_calibration(out / "calibration.json")
+    second = load_calibration(tmp_path / "again" / "calibration.json")
+    for name in first.T_ref_sensor:
+        assert np.abs(first.T_ref_sensor[name][:3, 3] - second.T_ref_sensor[name][:3, 3]).max() < 1e-5  # 1e-3 cm
+        rot = first.T_ref_sensor[name][:3, :3].T @ second.T_ref_sensor[name][:3, :3]
+        assert np.degrees(np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1))) < 1e-4
+        assert abs(first.time_offset[name] - second.time_offset[name]) < 1e-6  # 1e-3 ms
+
+
+def test_still_moving_flags_a_drifting_sensor(tmp_path):
+    from moisst_ns.cli.calibrate import still_moving
+
+    lines = ["step,sensor,x,y,z,roll,pitch,yaw,delta_ms"]
+    for step in range(10):
+        lines.append(f"{step},steady,0.5,0,0,0,0,10,30")
+        lines.append(f"{step},drifting,{0.5 + 0.01 * step},0,0,0,0,10,30")
+    (tmp_path / "h.csv").write_text("\n".join(lines) + "\n")
+    assert set(still_moving(tmp_path / "h.csv")) == {"drifting"}

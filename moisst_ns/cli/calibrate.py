@@ -52,6 +52,30 @@ def format_error_table(title: str, errors: Dict[str, Dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
+def still_moving(history: Path, last: int = 10, max_cm: float = 1.0, max_deg: float = 0.05, max_ms: float = 0.5) -> Dict[str, str]:
+    """Sensors whose last ``last`` logged estimates spread (std) more than the thresholds."""
+    import numpy as np
+
+    if not history.is_file():
+        return {}
+    rows: Dict[str, list] = {}
+    with history.open() as handle:
+        header = handle.readline().strip().split(",")
+        for line in handle:
+            values = dict(zip(header, line.strip().split(",")))
+            rows.setdefault(values["sensor"], []).append([float(values[k]) for k in ("x", "y", "z", "roll", "pitch", "yaw", "delta_ms")])
+    out = {}
+    for name, values in rows.items():
+        tail = np.asarray(values[-last:])
+        if len(tail) < 2:
+            continue
+        std = tail.std(axis=0)
+        cm, deg, ms = 100 * np.linalg.norm(std[:3]), float(np.linalg.norm(std[3:6])), float(std[6])
+        if cm > max_cm or deg > max_deg or ms > max_ms:
+            out[name] = f"std {cm:.2f} cm, {deg:.3f} deg, {ms:.2f} ms"
+    return out
+
+
 def run_calibration(cfg: CalibrateConfig) -> Path:
     """Train, then write ``calibration.json``; returns the run's config.yml path."""
     import torch
@@ -92,7 +116,10 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     start = time.time()
-    trainer.train()
+    try:
+        trainer.train()
+    except FloatingPointError as err:
+        fail(str(err))
     wall = time.time() - start
 
     optimizer = trainer.pipeline.model.camera_optimizer
@@ -109,6 +136,10 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         print(format_error_table("errors of the priors (before):", before))
         print(format_error_table("errors after calibration:", after))
         summary["errors_before"], summary["errors_after"] = before, after
+    moving = still_moving(config.get_base_dir() / "calibration_history.csv")
+    for name, spread in moving.items():
+        print(f"WARNING: {name} is still moving over its last estimates ({spread}); run longer or check the data")
+    summary["still_moving"] = moving
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return config.get_base_dir() / "config.yml"
 
