@@ -6,6 +6,9 @@ shorter or longer run (``moisst-calibrate --max-num-iterations``) keeps the same
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Tuple
+
 import torch
 
 from nerfstudio.configs.base_config import LoggingConfig, MachineConfig, ViewerConfig
@@ -23,10 +26,20 @@ from moisst_ns.model import MoisstModelConfig
 DEFAULT_ITERATIONS = {"moisst": 30000, "moisst-lite": 1500}
 
 
-def _adam_decay(lr: float, steps: int, weight_decay: float = 0.0, final_factor: float = 1e-2) -> dict:
+@dataclass
+class CalibrationAdamConfig(AdamOptimizerConfig):
+    """Adam for the calibration parameters, with a shorter second-moment memory than torch's default."""
+
+    betas: Tuple[float, float] = (0.9, 0.99)
+    """Adam's (beta1, beta2); beta2 = 0.99 forgets a gradient spike (e.g. when a loss switches on) in ~100 steps
+    instead of ~1000, so a parameter is not frozen for most of a short run."""
+
+
+def _adam_decay(lr: float, steps: int, weight_decay: float = 0.0, final_factor: float = 1e-2, calibration: bool = False) -> dict:
     """Adam with an exponential decay to ``final_factor`` of the initial rate over the run (paper IV)."""
+    config = CalibrationAdamConfig if calibration else AdamOptimizerConfig
     return {
-        "optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15, weight_decay=weight_decay),
+        "optimizer": config(lr=lr, eps=1e-15, weight_decay=weight_decay),
         "scheduler": ExponentialDecaySchedulerConfig(lr_final=lr * final_factor, max_steps=steps),
     }
 
@@ -50,6 +63,7 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         camera_optimizer=CalibrationOptimizerConfig(),
         hash_weight_decay_steps=int(0.1 * steps),
         depth_loss_start=int(0.04 * steps),
+        depth_loss_ramp_steps=int(0.05 * steps),
     )
     if lite:
         model.num_proposal_samples_per_ray = (64, 32)
@@ -93,9 +107,9 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
             "proposal_networks": _adam_decay(1e-2, steps, weight_decay=1e-6),
             "fields": _adam_decay(1e-2, steps, weight_decay=1e-6),
             "hash_grids": _adam_decay(1e-2, steps, weight_decay=1e-6),
-            "calibration_rotation": _adam_decay(rot_lr, steps),
-            "calibration_translation": _adam_decay(trans_lr, steps),
-            "calibration_time": _adam_decay(time_lr, steps),
+            "calibration_rotation": _adam_decay(rot_lr, steps, calibration=True),
+            "calibration_translation": _adam_decay(trans_lr, steps, calibration=True),
+            "calibration_time": _adam_decay(time_lr, steps, calibration=True),
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 12 if lite else 1 << 15, websocket_host="127.0.0.1"),
         vis="viewer",

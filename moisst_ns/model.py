@@ -13,7 +13,7 @@ import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple, Type
+from typing import Dict, List, Literal, Optional, Tuple, Type
 from unittest import mock
 
 import torch
@@ -102,6 +102,12 @@ class MoisstModelConfig(NerfactoModelConfig):
     """Until this step, rays of non-reference sensors do not update the scene (their losses move only their
     calibration): the scene is built from the sensor whose poses are known (and the others register against it,
     as in SOAC), so it cannot absorb their miscalibration. 0 disables it."""
+    registration_sensors: Literal["cameras", "all"] = "cameras"
+    """Which non-reference sensors register against a detached scene during ``registration_steps``: only the
+    cameras (LiDAR depth then shapes the scene, as in the paper) or every sensor."""
+    depth_loss_ramp_steps: int = 0
+    """The depth loss weight rises linearly from 0 to ``depth_loss_mult`` over this many steps after
+    ``depth_loss_start`` (avoids a gradient spike on the LiDAR's calibration when depth first applies)."""
     hash_weight_decay_steps: int = 0
     """Step at which the hash grids' weight decay (set on the ``hash_grids`` optimiser) is removed (paper
     III-C.3: kept for the first epochs, then removed so finer detail can be learned)."""
@@ -229,6 +235,8 @@ class MoisstModel(NerfactoModel):
         if not (self.training and self._step < self.config.registration_steps) or self._detached_pass or self.camera_optimizer.rig is None:
             return super().get_outputs(ray_bundle)
         reference = self._ray_sensor(ray_bundle) == self.camera_optimizer.rig.data.reference_index
+        if self.config.registration_sensors == "cameras" and "is_lidar" in ray_bundle.metadata:
+            reference = reference | ray_bundle.metadata["is_lidar"][:, 0]  # LiDAR rays shape the scene
         if bool(reference.all()) or not bool(reference.any()):
             return super().get_outputs(ray_bundle)
         ref_idx, other_idx = torch.nonzero(reference)[:, 0], torch.nonzero(~reference)[:, 0]
@@ -293,7 +301,10 @@ class MoisstModel(NerfactoModel):
                 depth = camera["expected_depth"].view(*shape)
                 loss_dict["depth_smoothness_loss"] = self.config.depth_smoothness_mult * depth_smoothness_loss(depth)
         if self.training and lidar is not None and "lidar_range" in batch and self._step >= self.config.depth_loss_start:
-            loss_dict["depth_loss"] = self.config.depth_loss_mult * lidar_depth_loss(outputs["expected_depth"][lidar, 0], batch["lidar_range"])
+            ramp = 1.0
+            if self.config.depth_loss_ramp_steps > 0:
+                ramp = min(1.0, (self._step - self.config.depth_loss_start + 1) / self.config.depth_loss_ramp_steps)
+            loss_dict["depth_loss"] = ramp * self.config.depth_loss_mult * lidar_depth_loss(outputs["expected_depth"][lidar, 0], batch["lidar_range"])
         if self.training:
             for name, value in loss_dict.items():
                 if not bool(torch.isfinite(value).all()):

@@ -39,6 +39,18 @@ class CalibrateConfig:
     """torch CPU threads (pin for bit-repeatable runs); torch's default when omitted."""
 
 
+def seed_everything(seed: int) -> None:
+    """Seed Python, numpy and torch as ``ns-train`` does (its train loop, which we bypass, would)."""
+    import random
+
+    import numpy as np
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
 def fail(message: str) -> None:
     print(f"moisst-calibrate: error: {message}", file=sys.stderr)
     raise SystemExit(2)
@@ -113,6 +125,7 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     truth = load_calibration(truth_file) if truth_file.is_file() else None
     prior = Calibration.from_rig(rig)
 
+    seed_everything(cfg.seed)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     start = time.time()
