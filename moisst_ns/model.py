@@ -26,6 +26,7 @@ from nerfstudio.field_components.encodings import HashEncoding
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from moisst_ns.viewer_panel import CalibrationPanel
 from moisst_ns.losses import depth_smoothness_loss, dssim_loss
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
 
@@ -102,7 +103,7 @@ class MoisstModelConfig(NerfactoModelConfig):
     """Until this step, rays of non-reference sensors do not update the scene (their losses move only their
     calibration): the scene is built from the sensor whose poses are known (and the others register against it,
     as in SOAC), so it cannot absorb their miscalibration. 0 disables it."""
-    registration_sensors: Literal["cameras", "all"] = "cameras"
+    registration_sensors: Literal["cameras", "all"] = "all"
     """Which non-reference sensors register against a detached scene during ``registration_steps``: only the
     cameras (LiDAR depth then shapes the scene, as in the paper) or every sensor."""
     depth_loss_ramp_steps: int = 0
@@ -127,6 +128,9 @@ class MoisstModel(NerfactoModel):
         if rig is None:
             raise ValueError("MoisstModel needs a rig: use the moisst-rig dataparser (ns-train moisst --data DATASET)")
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu", rig=rig)
+        names = [n for i, n in enumerate(rig.sensor_names) if i != rig.reference_index]
+        self.calibration = CalibrationPanel(names, rig.ground_truth is not None)
+        self.calibration.update(self.camera_optimizer.sensor_summary())
         self._hash_encodings: List[HashEncoding] = [m for m in self.modules() if isinstance(m, HashEncoding)]
         self._c2f_progress: Optional[float] = None
         if self.config.coarse_to_fine != (0, 0):
@@ -210,6 +214,7 @@ class MoisstModel(NerfactoModel):
     def log_calibration(self, path: Path, step: int) -> None:
         """Append the current estimate of every non-reference sensor to the history CSV."""
         summary = self.camera_optimizer.sensor_summary()
+        self.calibration.update(summary)
         columns = ["step", "sensor", "x", "y", "z", "roll", "pitch", "yaw", "delta_ms"]
         columns += ["err_translation_cm", "err_rotation_deg", "err_time_ms"]
         new = not path.exists()

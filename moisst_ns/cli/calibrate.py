@@ -35,6 +35,20 @@ class CalibrateConfig:
     """Also serve nerfstudio's viewer during training (on 127.0.0.1 unless --viewer-host)."""
     viewer_host: str = "127.0.0.1"
     """Host the viewer listens on; reach it remotely through an ssh port forward rather than 0.0.0.0."""
+    depth_loss: bool = True
+    """LiDAR depth loss L_D (paper eq. 7); --no-depth-loss for the Table VII ablation."""
+    dssim_loss: bool = True
+    """DSSIM patch loss (eq. 13; active with --patch-size > 1)."""
+    depth_smoothness_loss: bool = True
+    """Depth smoothness patch loss (eq. 13; active with --patch-size > 1)."""
+    patch_size: Optional[int] = None
+    """Sample camera pixels as P x P patches (needed by the patch losses); the method's default when omitted."""
+    lidar_rays: Optional[int] = None
+    """LiDAR points per step (0: cameras only); the method's default when omitted."""
+    resume: bool = False
+    """Continue the run in --output-dir from its latest checkpoint (calibration, scene and optimiser state)."""
+    save_every: Optional[int] = None
+    """Checkpoint every N steps and keep every checkpoint (default: the method's, latest only)."""
     threads: Optional[int] = None
     """torch CPU threads (pin for bit-repeatable runs); torch's default when omitted."""
 
@@ -116,9 +130,28 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     config.experiment_name = "."
     config.timestamp = "run"
     config.machine.seed = cfg.seed
+    model = config.pipeline.model
+    if not cfg.depth_loss:
+        model.depth_loss_mult = 0.0
+    if not cfg.dssim_loss:
+        model.dssim_loss_mult = 0.0
+    if not cfg.depth_smoothness_loss:
+        model.depth_smoothness_mult = 0.0
+    if cfg.patch_size is not None:
+        config.pipeline.datamanager.patch_size = cfg.patch_size
+    if cfg.lidar_rays is not None:
+        config.pipeline.datamanager.lidar_rays_per_batch = cfg.lidar_rays
     config.viewer.quit_on_train_completion = True
     config.viewer.websocket_host = cfg.viewer_host
     config.vis = "viewer+tensorboard" if cfg.viewer else "tensorboard"
+    if cfg.save_every:
+        config.steps_per_save = cfg.save_every
+        config.save_only_latest_checkpoint = False
+    checkpoints = config.get_checkpoint_dir()
+    if cfg.resume:
+        if not checkpoints.is_dir() or not any(checkpoints.glob("step-*.ckpt")):
+            fail(f"{checkpoints}: --resume: no checkpoint to resume from")
+        config.load_dir = checkpoints
     config.save_config()
 
     truth_file = rig.root / "ground_truth.json"

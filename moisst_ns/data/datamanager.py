@@ -37,6 +37,16 @@ class MoisstDataManagerConfig(VanillaDataManagerConfig):
     """Points closer than this (metres) are dropped (the vehicle itself)."""
     lidar_max_range: float = 80.0
     """Points farther than this (metres) are dropped."""
+    reference_only_steps: int = 0
+    """Before this step only the reference camera's images are sampled (the warm-up builds the scene from the
+    sensor whose poses are known, with every ray)."""
+    registration_steps: int = 0
+    """Until this step, a fixed share of the camera rays comes from the reference camera (see below)."""
+    registration_reference_fraction: float = 0.5
+    """Share of camera rays from the reference camera while registering (the others' rays then only move their
+    calibration, so the scene keeps being trained by a fair number of rays)."""
+    lidar_start_step: int = 0
+    """LiDAR points are sampled from this step on (set to where the depth loss starts)."""
     lidar_reference_view_only: bool = True
     """Keep only the points inside the reference camera's field of view (by the priors), so LiDAR rays land
     where the scene is observed by the sensor whose poses are known; a 360 degree scan otherwise mostly hits
@@ -85,12 +95,38 @@ class MoisstDataManager(VanillaDataManager):
     def has_lidar(self) -> bool:
         return self.config.lidar_rays_per_batch > 0 and self.lidar_points.shape[0] > 0
 
+    def reference_fraction(self, step: int):
+        """Share of camera rays from the reference camera at ``step`` (None: sample all images uniformly)."""
+        if step < self.config.reference_only_steps:
+            return 1.0
+        if step < self.config.registration_steps:
+            return self.config.registration_reference_fraction
+        return None
+
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
-        ray_bundle, batch = super().next_train(step)
+        self.train_count += 1
+        image_batch = next(self.iter_train_image_dataloader)
+        sampler = self.train_pixel_sampler
+        fraction = self.reference_fraction(step)
+        if fraction is None or not isinstance(image_batch["image"], torch.Tensor):
+            batch = sampler.sample(image_batch)
+        else:
+            frame_sensor = torch.as_tensor(self.rig.extra["frame_sensor_index"])
+            is_ref = (frame_sensor[image_batch["image_idx"].cpu()] == self.rig.reference_index).to(image_batch["image_idx"].device)
+            total = sampler.num_rays_per_batch
+            unit = max(self.config.patch_size, 1) ** 2
+            n_ref = int(round(total * fraction / unit)) * unit
+            parts = []
+            for mask, count in ((is_ref, n_ref), (~is_ref, total - n_ref)):
+                if count > 0 and bool(mask.any()):
+                    subset = {k: (v[mask] if isinstance(v, torch.Tensor) and v.shape[:1] == mask.shape else v) for k, v in image_batch.items()}
+                    parts.append(sampler.collate_image_dataset_batch(subset, count))
+            batch = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+        ray_bundle = self.train_ray_generator(batch["indices"])
         num_camera = len(ray_bundle)
         batch["num_camera_rays"] = num_camera
         batch["patch_size"] = self.config.patch_size
-        if not self.has_lidar:
+        if not self.has_lidar or step < self.config.lidar_start_step:
             return ray_bundle, batch
         device = ray_bundle.origins.device
         ray_bundle.metadata.update(lidar_placeholder(num_camera, device))

@@ -1,0 +1,582 @@
+"""``moisst-report RUN_DIR_OR_CONFIG [--output-dir DIR]``: diagnostics of a calibration run, as images and Markdown.
+
+Writes into ``DIR`` (default ``RUN/report``):
+
+* ``overlays/``: (a) LiDAR points projected onto camera images with the PRIOR extrinsics and time offsets and with
+  the CALIBRATED ones, coloured by depth, side by side (MOISST paper Fig. 3), for a few frames per camera.
+* ``renders/``: (b) the image the model renders at a camera frame's calibrated pose (one frame per camera, small),
+  its depth, and the calibrated LiDAR points drawn over it.
+* ``convergence/``: (c) per sensor, the errors (when logged) and the estimates against the step, from
+  ``calibration_history.csv``.
+* ``report.md``: (d) links to all of them and a per-sensor table (the history's last row).
+
+Projection (``project_points``): a LiDAR frame stamped ``t_L`` with per-point times ``tau`` is moved to the world
+with the rig's pose model, ``world_T_L = T_r(t_L + tau + delta_L) @ ref_T_L``, then into the camera frame of a
+camera frame stamped ``t_C`` (``world_T_C = T_r(t_C + delta_C) @ ref_T_C``) and projected with the camera's
+intrinsics (OpenCV axes, OpenCV distortion as nerfstudio uses it). For each camera frame the LiDAR frame nearest in
+reference-clock time (with the calibrated offsets) is used, the same scan in both panels.
+
+Pixel convention (the rig format's, nerfstudio's): ``u = fx x / z + cx`` is a continuous coordinate measured from
+the image's left edge, so pixel column ``i`` covers ``[i, i + 1)`` and its centre is at ``i + 0.5``; a point is in
+the image when ``0 <= u < w`` and ``0 <= v < h``, and is drawn into pixel ``(floor(u), floor(v))``.
+
+``project_points`` and the drawing helpers do not import nerfstudio; ``write_report`` does.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Dict, List, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+import tyro
+from jaxtyping import Bool, Float, UInt8
+
+COLORMAP = "turbo"
+"""matplotlib colormap of the depth colouring (near = blue, far = red)."""
+
+
+# --- projection and drawing (pure numpy) ----------------------------------------------------------------------
+
+
+def project_points(
+    points_world: Float[np.ndarray, "num 3"],
+    world_T_cam: Float[np.ndarray, "4 4"],
+    intrinsics: Mapping[str, Any],
+    min_depth: float = 1e-3,
+) -> Tuple[Float[np.ndarray, "num 2"], Float[np.ndarray, "num"], Bool[np.ndarray, "num"]]:
+    """Project world points into a camera (OpenCV axes: x right, y down, z forward).
+
+    Pixel convention: ``u = fx x' + cx``, ``v = fy y' + cy`` (``x' = x / z`` after OpenCV distortion when any
+    ``k1, k2, k3, k4, p1, p2`` is non-zero), continuous coordinates from the image's top-left corner; the centre
+    of pixel column ``i`` is at ``i + 0.5`` (the rig format's and nerfstudio's convention).
+
+    Args:
+        points_world: points in the world frame, metres.
+        world_T_cam: the camera's pose (maps camera coordinates to world coordinates).
+        intrinsics: ``fl_x``, ``fl_y`` (or ``fx``, ``fy``), ``cx``, ``cy``, ``w``, ``h`` and optionally the
+            distortion ``k1, k2, k3, k4, p1, p2`` (nerfstudio's OPENCV model).
+        min_depth: points with camera depth ``z <= min_depth`` are behind (or on) the camera.
+
+    Returns:
+        (uv pixel coordinates (NaN for points behind the camera), depth ``z`` in the camera frame (metres, negative
+        behind), mask of points in front of the camera and inside ``[0, w) x [0, h)``).
+    """
+    points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    pose = np.asarray(world_T_cam, dtype=np.float64)
+    cam = (points - pose[:3, 3]) @ pose[:3, :3]  # R^T (p - t), row by row
+    z = cam[:, 2]
+    front = z > min_depth
+    safe_z = np.where(front, z, 1.0)
+    x, y = cam[:, 0] / safe_z, cam[:, 1] / safe_z
+    fx = float(intrinsics["fl_x"] if "fl_x" in intrinsics else intrinsics["fx"])
+    fy = float(intrinsics["fl_y"] if "fl_y" in intrinsics else intrinsics["fy"])
+    cx, cy, w, h = float(intrinsics["cx"]), float(intrinsics["cy"]), float(intrinsics["w"]), float(intrinsics["h"])
+    k1, k2, k3, k4, p1, p2 = (float(intrinsics.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
+    valid = front
+    if any((k1, k2, k3, k4, p1, p2)):
+        # The distortion polynomial folds back far outside the image: only trust it near the image (50 % margin).
+        u0, v0 = fx * x + cx, fy * y + cy
+        valid = valid & (u0 > -0.5 * w) & (u0 < 1.5 * w) & (v0 > -0.5 * h) & (v0 < 1.5 * h)
+        r = x * x + y * y
+        d = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)))
+        x, y = x * d + 2.0 * p1 * x * y + p2 * (r + 2.0 * x * x), y * d + 2.0 * p2 * x * y + p1 * (r + 2.0 * y * y)
+    u, v = fx * x + cx, fy * y + cy
+    uv = np.stack([u, v], axis=-1)
+    uv[~front] = np.nan
+    mask = valid & np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    return uv, z, mask
+
+
+def depth_colors(depth: Float[np.ndarray, "num"], vmin: float, vmax: float, cmap: str = COLORMAP) -> UInt8[np.ndarray, "num 3"]:
+    """RGB colours of depths through a matplotlib colormap, ``vmin`` -> low end, ``vmax`` -> high end (clipped).
+
+    Args:
+        depth: depths, metres.
+        vmin: depth of the colormap's low end.
+        vmax: depth of the colormap's high end.
+        cmap: matplotlib colormap name.
+
+    Returns:
+        8-bit colours.
+    """
+    import matplotlib
+
+    t = np.clip((np.asarray(depth, dtype=np.float64) - vmin) / max(vmax - vmin, 1e-9), 0.0, 1.0)
+    return (matplotlib.colormaps[cmap](t)[:, :3] * 255.0 + 0.5).astype(np.uint8)
+
+
+def depth_range(*depths: np.ndarray) -> Tuple[float, float]:
+    """A robust common colour range (2nd and 98th percentiles) of several depth arrays; (0, 1) when empty."""
+    values = np.concatenate([np.asarray(d, dtype=np.float64).ravel() for d in depths] + [np.zeros(0)])
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return 0.0, 1.0
+    lo, hi = np.percentile(values, [2.0, 98.0])
+    return float(lo), float(max(hi, lo + 1e-6))
+
+
+def draw_points(
+    image: UInt8[np.ndarray, "h w 3"],
+    uv: Float[np.ndarray, "num 2"],
+    depth: Float[np.ndarray, "num"],
+    mask: Bool[np.ndarray, "num"],
+    vmin: float,
+    vmax: float,
+    radius: int = 0,
+) -> UInt8[np.ndarray, "h w 3"]:
+    """Draw projected points as squares of side ``2 radius + 1`` coloured by depth, nearest on top (z-buffer).
+
+    Args:
+        image: the camera image (not modified).
+        uv: pixel coordinates (``project_points``' convention: pixel ``(floor(u), floor(v))``).
+        depth: camera depth of each point.
+        mask: points to draw.
+        vmin: depth of the colormap's low end.
+        vmax: depth of the colormap's high end.
+        radius: half size of the drawn squares, pixels.
+
+    Returns:
+        A copy of ``image`` with the points drawn.
+    """
+    out = np.array(image, dtype=np.uint8, copy=True)
+    h, w = out.shape[:2]
+    idx = np.flatnonzero(mask)
+    if idx.size == 0:
+        return out
+    colors = depth_colors(depth[idx], vmin, vmax)
+    col, row = np.floor(uv[idx, 0]).astype(np.int64), np.floor(uv[idx, 1]).astype(np.int64)
+    offsets = np.arange(-radius, radius + 1)
+    cols = (col[:, None, None] + offsets[None, None, :]).repeat(len(offsets), axis=1).reshape(len(idx), -1)
+    rows = (row[:, None, None] + offsets[None, :, None]).repeat(len(offsets), axis=2).reshape(len(idx), -1)
+    point = np.repeat(np.arange(len(idx)), cols.shape[1])
+    cols, rows = cols.ravel(), rows.ravel()
+    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+    pixel, point = rows[inside] * w + cols[inside], point[inside]
+    order = np.lexsort((depth[idx][point], pixel))  # per pixel, nearest point first
+    pixel, point = pixel[order], point[order]
+    first = np.unique(pixel, return_index=True)[1]
+    out.reshape(-1, 3)[pixel[first]] = colors[point[first]]
+    return out
+
+
+def side_by_side(left: np.ndarray, right: np.ndarray, labels: Sequence[str] = ("prior", "calibrated"), gap: int = 4) -> np.ndarray:
+    """Two images of the same size next to each other, with a caption strip above each (Pillow's default font)."""
+    from PIL import Image, ImageDraw
+
+    h, w = left.shape[:2]
+    strip = 14
+    canvas = Image.new("RGB", (2 * w + gap, h + strip), (255, 255, 255))
+    canvas.paste(Image.fromarray(left), (0, strip))
+    canvas.paste(Image.fromarray(right), (w + gap, strip))
+    draw = ImageDraw.Draw(canvas)
+    for k, label in enumerate(labels):
+        draw.text((k * (w + gap) + 2, 1), label, fill=(0, 0, 0))
+    return np.asarray(canvas)
+
+
+def pick_evenly(num: int, count: int) -> List[int]:
+    """``count`` indices spread evenly over ``range(num)`` (first and last included), without repeats."""
+    if num <= 0 or count <= 0:
+        return []
+    return sorted(set(np.linspace(0, num - 1, min(count, num)).round().astype(int).tolist()))
+
+
+# --- rig poses of LiDAR and camera frames ---------------------------------------------------------------------
+
+
+def lidar_points_world(calib, sensor: int, stamp_rel: float, points: np.ndarray, times: Optional[np.ndarray], prior: bool) -> np.ndarray:
+    """A LiDAR scan in the world frame: each point at the pose of its own time (de-skewed by the rig model).
+
+    Args:
+        calib: the run's ``RigCalibration``.
+        sensor: the LiDAR's sensor index.
+        stamp_rel: the frame's own-clock stamp minus ``t0``, seconds.
+        points: (N, 3) points in the LiDAR frame.
+        times: (N,) per-point offsets from the stamp, or None (all at the stamp).
+        prior: use the priors instead of the calibration.
+
+    Returns:
+        (N, 3) world points, metres, float64.
+    """
+    import torch
+
+    fn = calib.prior_sensor_poses if prior else calib.sensor_poses
+    device = calib.prior_extrinsics.device
+    stamps = np.full(1, stamp_rel) if times is None else stamp_rel + np.asarray(times, dtype=np.float64)
+    with torch.no_grad():
+        stamp_t = torch.as_tensor(stamps, dtype=torch.float64, device=device)
+        poses = fn(torch.full(stamp_t.shape, sensor, dtype=torch.long, device=device), stamp_t).cpu().numpy()
+    pts = np.asarray(points, dtype=np.float64)
+    if times is None:
+        return pts @ poses[0, :3, :3].T + poses[0, :3, 3]
+    return np.einsum("nij,nj->ni", poses[:, :3, :3], pts) + poses[:, :3, 3]
+
+
+def sensor_pose(calib, sensor: int, stamp_rel: float, prior: bool) -> np.ndarray:
+    """``world_T_sensor`` (4x4, metres) of one frame with the calibration (or the priors)."""
+    import torch
+
+    fn = calib.prior_sensor_poses if prior else calib.sensor_poses
+    device = calib.prior_extrinsics.device
+    with torch.no_grad():
+        pose = fn(torch.tensor([sensor], device=device), torch.tensor([stamp_rel], dtype=torch.float64, device=device))
+    return pose[0].cpu().numpy()
+
+
+def nearest_lidar_frames(rig, calib, camera: str, stamp: float) -> List[Tuple[str, Any]]:
+    """For each LiDAR of the rig, its frame nearest in reference-clock time (calibrated offsets) to a camera frame.
+
+    Args:
+        rig: the dataset's ``Rig``.
+        calib: the run's ``RigCalibration``.
+        camera: the camera's name.
+        stamp: the camera frame's own-clock stamp (absolute).
+
+    Returns:
+        ``[(lidar name, FrameSpec)]``.
+    """
+    names = calib.data.sensor_names
+    deltas = calib.time_offsets().detach().cpu().numpy()
+    t_ref = stamp + deltas[names.index(camera)]
+    out = []
+    for name, spec in rig.sensors.items():
+        if spec.type != "lidar":
+            continue
+        frames = rig.frames_of(name)
+        times = np.array([f.timestamp for f in frames]) + deltas[names.index(name)]
+        out.append((name, frames[int(np.argmin(np.abs(times - t_ref)))]))
+    return out
+
+
+# --- the report -----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Overlay:
+    camera: str
+    frame: int
+    lidar_frames: str
+    prior_in_image: int
+    calibrated_in_image: int
+    files: Dict[str, str]
+
+
+def _save(image: np.ndarray, path: Path) -> str:
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.asarray(image, dtype=np.uint8)).save(path)
+    return path.as_posix()
+
+
+def _scans(rig, calib, camera: str, stamp: float, min_range: float, max_range: float):
+    from moisst_ns.rig.format import load_lidar_scan
+
+    names = calib.data.sensor_names
+    for lidar, frame in nearest_lidar_frames(rig, calib, camera, stamp):
+        points, times, _ = load_lidar_scan(rig.root / frame.file_path, min_range=min_range)
+        keep = np.linalg.norm(points, axis=1) <= max_range
+        yield lidar, frame, names.index(lidar), frame.timestamp - calib.data.t0, points[keep], None if times is None else times[keep]
+
+
+def make_overlays(rig, calib, out_dir: Path, frames_per_camera: int, min_range: float, max_range: float) -> List[_Overlay]:
+    """(a): prior vs calibrated LiDAR overlays for ``frames_per_camera`` frames of every camera."""
+    from PIL import Image
+
+    names = calib.data.sensor_names
+    results = []
+    for camera, spec in rig.sensors.items():
+        if spec.type != "camera":
+            continue
+        intr, frames = spec.intrinsics, rig.frames_of(camera)
+        for k in pick_evenly(len(frames), frames_per_camera):
+            frame = frames[k]
+            with Image.open(rig.root / frame.file_path) as img:
+                image = np.asarray(img.convert("RGB"))
+            t_cam = frame.timestamp - calib.data.t0
+            panels, counts, used = {}, {}, []
+            projected = {}
+            for mode in ("prior", "calibrated"):
+                prior = mode == "prior"
+                cam_pose = sensor_pose(calib, names.index(camera), t_cam, prior)
+                uvs, zs, masks = [], [], []
+                for lidar, lframe, lidx, t_lidar, points, times in _scans(rig, calib, camera, frame.timestamp, min_range, max_range):
+                    if prior:
+                        used.append(f"{lidar} {Path(lframe.file_path).name}")
+                    uv, z, mask = project_points(lidar_points_world(calib, lidx, t_lidar, points, times, prior), cam_pose, intr)
+                    uvs.append(uv), zs.append(z), masks.append(mask)
+                projected[mode] = (np.concatenate(uvs), np.concatenate(zs), np.concatenate(masks))
+            vmin, vmax = depth_range(*(z[m] for _, z, m in projected.values()))
+            radius = max(0, round(image.shape[1] / 640))
+            files = {}
+            for mode, (uv, z, mask) in projected.items():
+                panels[mode] = draw_points(image, uv, z, mask, vmin, vmax, radius)
+                counts[mode] = int(mask.sum())
+                files[mode] = _save(panels[mode], out_dir / "overlays" / f"{camera}_{k:04d}_{mode}.png")
+            files["side_by_side"] = _save(side_by_side(panels["prior"], panels["calibrated"]), out_dir / "overlays" / f"{camera}_{k:04d}_side_by_side.png")
+            results.append(_Overlay(camera, k, ", ".join(used), counts["prior"], counts["calibrated"], files))
+    return results
+
+
+def training_index(optimizer, sensor: int, stamp_rel: float) -> int:
+    """Index of a camera frame among the run's training frames (matched by sensor and stamp)."""
+    sensors = optimizer.frame_sensor.cpu().numpy()
+    stamps = optimizer.frame_stamps.cpu().numpy()
+    hits = np.flatnonzero((sensors == sensor) & (np.abs(stamps - stamp_rel) < 1e-9))
+    if hits.size == 0:
+        raise ValueError(f"sensor {sensor} frame at {stamp_rel} s is not a training frame of the run")
+    return int(hits[0])
+
+
+def make_renders(rig, pipeline, out_dir: Path, render_width: int, min_range: float, max_range: float) -> List[Dict[str, Any]]:
+    """(b): per camera, the model's render at its first frame's calibrated pose, with the calibrated LiDAR points."""
+    import torch
+
+    from nerfstudio.cameras.cameras import CAMERA_MODEL_TO_TYPE, Cameras
+
+    model = pipeline.model
+    opt = model.camera_optimizer
+    calib = opt.rig
+    names = calib.data.sensor_names
+    results = []
+    was_training = model.training
+    model.eval()
+    try:
+        for camera, spec in rig.sensors.items():
+            if spec.type != "camera":
+                continue
+            intr, frame = spec.intrinsics, rig.frames_of(camera)[0]
+            t_cam = frame.timestamp - calib.data.t0
+            index = training_index(opt, names.index(camera), t_cam)
+            with torch.no_grad():
+                c2w = opt.frame_c2w(torch.tensor([index]))[:, :3, :4].float().cpu()
+            cameras = Cameras(
+                camera_to_worlds=c2w,
+                fx=float(intr["fl_x"]), fy=float(intr["fl_y"]), cx=float(intr["cx"]), cy=float(intr["cy"]),
+                width=int(intr["w"]), height=int(intr["h"]),
+                distortion_params=torch.tensor([[intr["k1"], intr["k2"], intr.get("k3", 0.0), intr.get("k4", 0.0), intr["p1"], intr["p2"]]]).float(),
+                camera_type=CAMERA_MODEL_TO_TYPE[intr["camera_model"]],
+            )
+            scale = min(1.0, render_width / float(intr["w"]))
+            if scale < 1.0:
+                cameras.rescale_output_resolution(scale)
+            with torch.no_grad():
+                outputs = model.get_outputs_for_camera(cameras)
+                norms = cameras.generate_rays(camera_indices=0, keep_shape=True).metadata["directions_norm"]
+            rgb = (outputs["rgb"].clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+            # distance along the ray (model units) -> camera z-depth in metres
+            depth_z = (outputs["expected_depth"].cpu() / norms.cpu()).numpy()[..., 0] / float(opt.world_scale)
+            small = {"fl_x": float(cameras.fx), "fl_y": float(cameras.fy), "cx": float(cameras.cx), "cy": float(cameras.cy),
+                     "w": int(cameras.width), "h": int(cameras.height)}
+            small.update({k: intr.get(k, 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")})
+            cam_pose = sensor_pose(calib, names.index(camera), t_cam, prior=False)
+            uvs, zs, masks = [], [], []
+            for _, _, lidx, t_lidar, points, times in _scans(rig, calib, camera, frame.timestamp, min_range, max_range):
+                uv, z, mask = project_points(lidar_points_world(calib, lidx, t_lidar, points, times, prior=False), cam_pose, small)
+                uvs.append(uv), zs.append(z), masks.append(mask)
+            uv, z, mask = np.concatenate(uvs), np.concatenate(zs), np.concatenate(masks)
+            vmin, vmax = depth_range(z[mask])
+            stem = out_dir / "renders" / f"{camera}_{rig.frames_of(camera).index(frame):04d}"
+            files = {
+                "rendered": _save(rgb, stem.with_name(stem.name + "_rendered.png")),
+                "rendered_depth": _save(depth_colors(depth_z.ravel(), vmin, vmax).reshape(*depth_z.shape, 3), stem.with_name(stem.name + "_rendered_depth.png")),
+                "rendered_lidar": _save(draw_points(rgb, uv, z, mask, vmin, vmax), stem.with_name(stem.name + "_rendered_lidar.png")),
+            }
+            cols, rows = np.floor(uv[mask, 0]).astype(int), np.floor(uv[mask, 1]).astype(int)
+            residual = np.abs(depth_z[rows, cols] - z[mask])
+            results.append({"camera": camera, "size": (int(cameras.width), int(cameras.height)), "files": files, "points": int(mask.sum()),
+                            "median_depth_residual_m": float(np.median(residual)) if residual.size else float("nan")})
+    finally:
+        model.train(was_training)
+    return results
+
+
+def convergence_plots(history: Dict[str, Dict[str, np.ndarray]], truth: Optional[Dict[str, Dict[str, float]]], out_dir: Path) -> Dict[str, str]:
+    """(c): per sensor, errors (when logged) and estimates against the step (matplotlib, Agg canvas).
+
+    Args:
+        history: ``moisst_ns.cli.evaluate.read_history`` output.
+        truth: per sensor ``{x, y, z, roll, pitch, yaw, delta_ms}`` of the ground truth (dashed lines), or None.
+        out_dir: the report folder.
+
+    Returns:
+        ``{sensor: png path}``.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from moisst_ns.cli.evaluate import ERROR_COLUMNS
+
+    files = {}
+    (out_dir / "convergence").mkdir(parents=True, exist_ok=True)
+    for name, cols in history.items():
+        steps = cols["step"]
+        errors = [c for c in ERROR_COLUMNS if c in cols and np.isfinite(cols[c]).any()]
+        rows = 2 if errors else 1
+        fig = Figure(figsize=(12, 3.2 * rows))
+        FigureCanvasAgg(fig)
+        axes = fig.subplots(rows, 3, squeeze=False)
+        if errors:
+            for ax, c, label in zip(axes[0], ERROR_COLUMNS, ("translation error (cm)", "rotation error (deg)", "time error (ms)")):
+                ax.plot(steps, cols[c], marker=".")
+                ax.set_title(label), ax.set_xlabel("step"), ax.grid(alpha=0.3)
+        groups = ((("x", "y", "z"), "position (m)"), (("roll", "pitch", "yaw"), "roll / pitch / yaw (deg)"), (("delta_ms",), "time offset (ms)"))
+        for ax, (keys, label) in zip(axes[-1], groups):
+            for key in keys:
+                line = ax.plot(steps, cols[key], marker=".", label=key)[0]
+                if truth is not None and name in truth:
+                    ax.axhline(truth[name][key], color=line.get_color(), linestyle="--", linewidth=1)
+            ax.set_title(label + (" (dashed: truth)" if truth is not None else "")), ax.set_xlabel("step"), ax.grid(alpha=0.3)
+            if len(keys) > 1:
+                ax.legend(fontsize="small")
+        fig.suptitle(name)
+        fig.tight_layout()
+        path = out_dir / "convergence" / f"{name}.png"
+        fig.savefig(path, dpi=80)
+        files[name] = path.as_posix()
+    return files
+
+
+def _rel(path: str, base: Path) -> str:
+    return Path(path).relative_to(base).as_posix()
+
+
+def write_report(
+    config_path: Path,
+    out_dir: Path,
+    pipeline=None,
+    frames_per_camera: int = 3,
+    render: bool = True,
+    render_width: int = 160,
+) -> Path:
+    """Write the diagnostics of a run (overlays, renders, convergence plots, report.md) into ``out_dir``.
+
+    Args:
+        config_path: the run's config.yml (or its folder).
+        out_dir: output folder (created; must not lie inside the dataset folder).
+        pipeline: the run's pipeline when already in memory (e.g. at the end of moisst-calibrate); loaded from the
+            checkpoint with ``eval_setup`` otherwise.
+        frames_per_camera: camera frames per camera for the prior / calibrated overlays.
+        render: also render one frame per camera with the model.
+        render_width: width of those renders, pixels (never upscaled).
+
+    Returns:
+        The path of report.md.
+
+    Raises:
+        moisst_ns.cli.export.RunError: a config of another method, no checkpoint, output inside the dataset, ...
+    """
+    from moisst_ns.cli.evaluate import EvalError, find_history, read_history
+    from moisst_ns.cli.export import check_output_dir, dataset_of, load_run_config, open_run, resolve_config_path, xyz_rpy_delta
+    from moisst_ns.rig.format import load_rig
+
+    config_path = resolve_config_path(Path(config_path))
+    config = load_run_config(config_path)
+    out_dir = Path(out_dir)
+    check_output_dir(out_dir, dataset_of(config))
+    step = None
+    if pipeline is None:
+        config, pipeline, step, rig = open_run(config_path)
+    else:
+        rig = load_rig(dataset_of(config), check_files=False)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    calib = pipeline.model.camera_optimizer.rig
+    datamanager = config.pipeline.datamanager
+    min_range, max_range = float(getattr(datamanager, "lidar_min_range", 0.0)), float(getattr(datamanager, "lidar_max_range", np.inf))
+    has_lidar = any(s.type == "lidar" for s in rig.sensors.values())
+
+    overlays = make_overlays(rig, calib, out_dir, frames_per_camera, min_range, max_range) if has_lidar else []
+    renders = make_renders(rig, pipeline, out_dir, render_width, min_range, max_range) if has_lidar and render else []
+
+    try:
+        history_path = find_history(config_path.parent)
+        history = read_history(history_path)
+    except EvalError as err:
+        history_path, history, history_problem = None, None, str(err)
+    truth = None
+    if calib.data.ground_truth is not None:
+        gt = calib.data.ground_truth
+        truth = {n: xyz_rpy_delta(gt.T_ref_sensor[n], gt.time_offset[n]) for n in gt.T_ref_sensor}
+    plots = convergence_plots(history, truth, out_dir) if history else {}
+
+    lines = ["# MOISST calibration report", "", f"Run: `{config_path.resolve()}`" + (f", checkpoint step {step}" if step is not None else ""),
+             f"Dataset: `{rig.root.resolve()}`; reference sensor `{rig.reference_sensor}`.", ""]
+    lines += ["## Calibration (last logged row of calibration_history.csv)", ""]
+    if history:
+        lines += ["| sensor | step | x (m) | y (m) | z (m) | roll (deg) | pitch (deg) | yaw (deg) | delta (ms) | err. transl. (cm) | err. rot. (deg) | err. time (ms) |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for name, cols in history.items():
+            cells = [f"{cols[c][-1]:.4f}" for c in ("x", "y", "z")] + [f"{cols[c][-1]:.3f}" for c in ("roll", "pitch", "yaw")]
+            cells.append(f"{cols['delta_ms'][-1]:.2f}")
+            for c in ("err_translation_cm", "err_rotation_deg", "err_time_ms"):
+                cells.append(f"{cols[c][-1]:.3f}" if c in cols and np.isfinite(cols[c][-1]) else "-")
+            lines.append(f"| {name} | {int(cols['step'][-1])} | " + " | ".join(cells) + " |")
+        lines += ["", f"From `{history_path}`; errors are '-' when the dataset has no ground_truth.json.", ""]
+    else:
+        lines += [f"No history: {history_problem}", ""]
+
+    lines += ["## (a) LiDAR points on camera images: prior vs calibrated", ""]
+    if not has_lidar:
+        lines += ["The rig has no LiDAR: no LiDAR projections (sections a and b are skipped).", ""]
+    else:
+        lines += ["Left: priors (rig.json extrinsics and time offsets); right: calibration. Points coloured by camera depth "
+                  f"({COLORMAP}: near blue, far red), each point at the pose of its own time; the LiDAR frame nearest in time.", ""]
+        for o in overlays:
+            lines += [f"**{o.camera}**, frame {o.frame} (LiDAR: {o.lidar_frames}); points in the image: prior {o.prior_in_image}, "
+                      f"calibrated {o.calibrated_in_image}", "", f"![{o.camera} {o.frame}]({_rel(o.files['side_by_side'], out_dir)})",
+                      f"([prior]({_rel(o.files['prior'], out_dir)}), [calibrated]({_rel(o.files['calibrated'], out_dir)}))", ""]
+        lines += ["## (b) LiDAR points on the model's render at the calibrated pose", ""]
+        if not render:
+            lines += ["Skipped (--no-render).", ""]
+        for r in renders:
+            f = r["files"]
+            lines += [f"**{r['camera']}** ({r['size'][0]}x{r['size'][1]}): {r['points']} LiDAR points; median |rendered depth - LiDAR "
+                      f"depth| = {r['median_depth_residual_m']:.3f} m", "",
+                      f"![render]({_rel(f['rendered'], out_dir)}) ![depth]({_rel(f['rendered_depth'], out_dir)}) ![lidar]({_rel(f['rendered_lidar'], out_dir)})", ""]
+    lines += ["## (c) Convergence", ""]
+    if plots:
+        for name, path in plots.items():
+            lines += [f"**{name}**", "", f"![{name}]({_rel(path, out_dir)})", ""]
+    else:
+        lines += ["No calibration_history.csv to plot.", ""]
+    report = out_dir / "report.md"
+    report.write_text("\n".join(lines))
+    return report
+
+
+@dataclass
+class ReportConfig:
+    """Diagnostics of a MOISST run: LiDAR on images (prior vs calibrated), renders, convergence plots, report.md."""
+
+    run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_DIR_OR_CONFIG")]
+    """The run folder (OUT/<method>/run) or its config.yml."""
+    output_dir: Optional[Path] = None
+    """Where the report goes (created); RUN/report when omitted. Never inside the dataset folder."""
+    frames_per_camera: int = 3
+    """Camera frames per camera for the prior / calibrated LiDAR overlays (spread over the sequence)."""
+    render: bool = True
+    """Render one frame per camera with the model at its calibrated pose (--no-render skips it)."""
+    render_width: int = 160
+    """Width of those renders, pixels (never upscaled; keeps the render cheap on CPU)."""
+
+
+def main() -> None:
+    """Console script ``moisst-report``."""
+    from moisst_ns.cli.export import RunError, fail, resolve_config_path
+    from moisst_ns.rig.format import RigFormatError
+
+    cfg = tyro.cli(ReportConfig)
+    try:
+        config_path = resolve_config_path(cfg.run)
+        out = cfg.output_dir if cfg.output_dir is not None else config_path.parent / "report"
+        report = write_report(config_path, out, frames_per_camera=cfg.frames_per_camera, render=cfg.render, render_width=cfg.render_width)
+    except (RunError, RigFormatError) as err:
+        fail("moisst-report", str(err))
+    print(f"wrote {report}")
+
+
+if __name__ == "__main__":
+    main()
