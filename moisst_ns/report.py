@@ -25,7 +25,6 @@ the image when ``0 <= u < w`` and ``0 <= v < h``, and is drawn into pixel ``(flo
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Dict, List, Mapping, Optional, Sequence, Tuple
@@ -256,12 +255,20 @@ def nearest_lidar_frames(rig, calib, camera: str, stamp: float) -> List[Tuple[st
 
 @dataclass
 class _Overlay:
+    """One prior / calibrated overlay pair, as report.md lists it."""
+
     camera: str
+    """Camera name."""
     frame: int
+    """Index of the frame among the camera's frames (rig.json order)."""
     lidar_frames: str
+    """The LiDAR frames drawn (``<lidar> <file name>``, comma separated)."""
     prior_in_image: int
+    """Points inside the image with the priors."""
     calibrated_in_image: int
+    """Points inside the image with the calibration."""
     files: Dict[str, str]
+    """``prior``, ``calibrated``, ``side_by_side`` -> PNG path."""
 
 
 def _save(image: np.ndarray, path: Path) -> str:
@@ -297,15 +304,14 @@ def make_overlays(rig, calib, out_dir: Path, frames_per_camera: int, min_range: 
             with Image.open(rig.root / frame.file_path) as img:
                 image = np.asarray(img.convert("RGB"))
             t_cam = frame.timestamp - calib.data.t0
-            panels, counts, used = {}, {}, []
-            projected = {}
+            scans = list(_scans(rig, calib, camera, frame.timestamp, min_range, max_range))
+            used = [f"{lidar} {Path(lframe.file_path).name}" for lidar, lframe, *_ in scans]
+            panels, counts, projected = {}, {}, {}
             for mode in ("prior", "calibrated"):
                 prior = mode == "prior"
                 cam_pose = sensor_pose(calib, names.index(camera), t_cam, prior)
                 uvs, zs, masks = [], [], []
-                for lidar, lframe, lidx, t_lidar, points, times in _scans(rig, calib, camera, frame.timestamp, min_range, max_range):
-                    if prior:
-                        used.append(f"{lidar} {Path(lframe.file_path).name}")
+                for _, _, lidx, t_lidar, points, times in scans:
                     uv, z, mask = project_points(lidar_points_world(calib, lidx, t_lidar, points, times, prior), cam_pose, intr)
                     uvs.append(uv), zs.append(z), masks.append(mask)
                 projected[mode] = (np.concatenate(uvs), np.concatenate(zs), np.concatenate(masks))
@@ -514,7 +520,7 @@ def write_report(
             for c in ("err_translation_cm", "err_rotation_deg", "err_time_ms"):
                 cells.append(f"{cols[c][-1]:.3f}" if c in cols and np.isfinite(cols[c][-1]) else "-")
             lines.append(f"| {name} | {int(cols['step'][-1])} | " + " | ".join(cells) + " |")
-        lines += ["", f"From `{history_path}`; errors are '-' when the dataset has no ground_truth.json.", ""]
+        lines += ["", f"From `{history_path.resolve()}`; errors are '-' when the dataset has no ground_truth.json.", ""]
     else:
         lines += [f"No history: {history_problem}", ""]
 
@@ -553,7 +559,7 @@ class ReportConfig:
 
     run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_DIR_OR_CONFIG")]
     """The run folder (OUT/<method>/run) or its config.yml."""
-    output_dir: Optional[Path] = None
+    output_dir: Annotated[Optional[Path], tyro.conf.arg(metavar="DIR")] = None
     """Where the report goes (created); RUN/report when omitted. Never inside the dataset folder."""
     frames_per_camera: int = 3
     """Camera frames per camera for the prior / calibrated LiDAR overlays (spread over the sequence)."""

@@ -227,8 +227,8 @@ def xyz_rpy_delta(pose: np.ndarray, time_offset: float) -> Dict[str, float]:
     from moisst_ns.rig.geometry import pose_to_xyz_rpy
 
     values = pose_to_xyz_rpy(torch.as_tensor(pose, dtype=torch.float64)).numpy()
-    out = dict(zip(ESTIMATE_KEYS[:6], map(float, values)))
-    out["delta_ms"] = float(time_offset) * 1000.0
+    out = {k: float(v) + 0.0 for k, v in zip(ESTIMATE_KEYS[:6], values)}  # + 0.0: no -0.0 in the tables
+    out["delta_ms"] = float(time_offset) * 1000.0 + 0.0
     return out
 
 

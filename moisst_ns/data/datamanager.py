@@ -119,8 +119,7 @@ class MoisstDataManager(VanillaDataManager):
             parts = []
             for mask, count in ((is_ref, n_ref), (~is_ref, total - n_ref)):
                 if count > 0 and bool(mask.any()):
-                    subset = {k: (v[mask] if isinstance(v, torch.Tensor) and v.shape[:1] == mask.shape else v) for k, v in image_batch.items()}
-                    parts.append(sampler.collate_image_dataset_batch(subset, count))
+                    parts.append(sample_images(sampler, image_batch, torch.nonzero(mask)[:, 0], count))
             batch = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
         ray_bundle = self.train_ray_generator(batch["indices"])
         num_camera = len(ray_bundle)
@@ -136,6 +135,21 @@ class MoisstDataManager(VanillaDataManager):
         batch["lidar_range"] = points.norm(dim=-1) * float(self.rig.extra["world_scale"])
         batch["lidar_sensor"] = self.lidar_sensor[pick].to(device)
         return concat_ray_bundles(ray_bundle, lidar), batch
+
+
+def sample_images(sampler, image_batch: Dict, positions: Tensor, count: int) -> Dict:
+    """``count`` pixels (or patches) from the images at ``positions`` of a cached image batch, without copying
+    the images (nerfstudio's collate would need a sliced copy of the whole cache)."""
+    image = image_batch["image"]
+    height, width = image.shape[1:3]
+    local = sampler.sample_method(count, len(positions), height, width, device=image.device)
+    c = positions.to(local.device)[local[:, 0].long()].cpu()
+    y, x = local[:, 1].long().cpu(), local[:, 2].long().cpu()
+    out = {k: v[c, y, x] for k, v in image_batch.items() if k != "image_idx" and isinstance(v, torch.Tensor) and v.dim() >= 3}
+    indices = local.clone()
+    indices[:, 0] = image_batch["image_idx"][c]
+    out["indices"] = indices
+    return out
 
 
 def lidar_placeholder(num: int, device) -> Dict[str, Tensor]:
