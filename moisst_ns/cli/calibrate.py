@@ -45,6 +45,9 @@ class CalibrateConfig:
     """Sample camera pixels as P x P patches (needed by the patch losses); the method's default when omitted."""
     lidar_rays: Optional[int] = None
     """LiDAR points per step (0: cameras only); the method's default when omitted."""
+    report: bool = True
+    """Write diagnostics to OUT/report: LiDAR points over the images with prior vs calibrated extrinsics, the
+    same over a model render, convergence plots, report.md (same as ``moisst-report``)."""
     resume: bool = False
     """Continue the run in --output-dir from its latest checkpoint (calibration, scene and optimiser state)."""
     save_every: Optional[int] = None
@@ -187,6 +190,11 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         print(f"WARNING: {name} is still moving over its last estimates ({spread}); run longer or check the data")
     summary["still_moving"] = moving
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    if cfg.report:
+        from moisst_ns.report import write_report
+
+        report = write_report(config.get_base_dir() / "config.yml", out / "report", pipeline=trainer.pipeline)
+        print(f"diagnostics: {report}")
     return config.get_base_dir() / "config.yml"
 
 
