@@ -216,6 +216,20 @@ class CalibrationOptimizer(CameraOptimizer):
             out[name] = entry
         return out
 
+    @torch.no_grad()
+    def change_summary(self) -> list:
+        """One short string per non-reference sensor: current delta and change of the extrinsic from the prior."""
+        assert self.rig is not None
+        out = []
+        deltas = self.rig.time_offsets()
+        for i, name in enumerate(self.rig.data.sensor_names):
+            if i == self.rig.data.reference_index:
+                continue
+            moved_cm = float(self.rig.translation[i].norm()) * 100.0
+            turned_deg = float(np.rad2deg(self.rig.rotvec[i].norm()))
+            out.append(f"{name} delta {float(deltas[i]) * 1000:+.1f} ms, moved {moved_cm:.1f} cm / {turned_deg:.2f} deg")
+        return out
+
     def get_param_groups(self, param_groups: dict) -> None:
         if self.rig is not None:
             param_groups["calibration_rotation"] = [self.rig.rotvec]

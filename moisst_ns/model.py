@@ -109,6 +109,8 @@ class MoisstModelConfig(NerfactoModelConfig):
     depth_loss_ramp_steps: int = 0
     """The depth loss weight rises linearly from 0 to ``depth_loss_mult`` over this many steps after
     ``depth_loss_start`` (avoids a gradient spike on the LiDAR's calibration when depth first applies)."""
+    print_calibration: bool = True
+    """Print each sensor's current delta and change from its prior whenever the history is logged."""
     hash_weight_decay_steps: int = 0
     """Step at which the hash grids' weight decay (set on the ``hash_grids`` optimiser) is removed (paper
     III-C.3: kept for the first epochs, then removed so finer detail can be learned)."""
@@ -215,6 +217,8 @@ class MoisstModel(NerfactoModel):
         """Append the current estimate of every non-reference sensor to the history CSV."""
         summary = self.camera_optimizer.sensor_summary()
         self.calibration.update(summary)
+        if self.config.print_calibration:
+            CONSOLE.print(f"[calibration] step {step}: " + " | ".join(self.camera_optimizer.change_summary()))
         columns = ["step", "sensor", "x", "y", "z", "roll", "pitch", "yaw", "delta_ms"]
         columns += ["err_translation_cm", "err_rotation_deg", "err_time_ms"]
         new = not path.exists()
