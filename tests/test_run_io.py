@@ -166,3 +166,16 @@ def test_resume_restores_calibration_and_optimiser_state(tmp_path):
     for name in a.T_ref_sensor:
         assert np.linalg.norm(a.T_ref_sensor[name][:3, 3] - b.T_ref_sensor[name][:3, 3]) < 0.01
         assert abs(a.time_offset[name] - b.time_offset[name]) < 1e-3
+
+
+def test_time_offset_bound_is_reported(short_run, tmp_path, capsys):
+    """--max-time-offset bounds delta's change; a sensor that runs into it is reported, not silently absurd."""
+    rig = short_run[0]
+    run_calibration(CalibrateConfig(dataset=rig, output_dir=tmp_path / "b", max_num_iterations=12, seed=3, max_time_offset=0.001, report=False))
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    calib = load_calibration(tmp_path / "b" / "calibration.json")
+    prior = json.loads((rig / "rig.json").read_text())["sensors"]
+    for name, offset in calib.time_offset.items():
+        assert abs(offset - prior[name]["time_offset"]) <= 0.001 + 1e-9
+    assert set(summary["hit_bounds"]) and all("time offset" in " ".join(v) for v in summary["hit_bounds"].values())
+    assert "ran into its bound" in capsys.readouterr().out

@@ -48,6 +48,9 @@ class CalibrateConfig:
     report: bool = True
     """Write diagnostics to OUT/report: LiDAR points over the images with prior vs calibrated extrinsics, the
     same over a model render, convergence plots, report.md (same as ``moisst-report``)."""
+    max_time_offset: Optional[float] = None
+    """Bound (seconds) on how far a sensor's time offset may move from its prior (default 0.3 s); a sensor that
+    hits it is a runaway and shows in the still-moving / error report instead of going absurd."""
     resume: bool = False
     """Continue the run in --output-dir from its latest checkpoint (calibration, scene and optimiser state)."""
     save_every: Optional[int] = None
@@ -140,6 +143,8 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         model.dssim_loss_mult = 0.0
     if not cfg.depth_smoothness_loss:
         model.depth_smoothness_mult = 0.0
+    if cfg.max_time_offset is not None:
+        model.camera_optimizer.max_time_offset = cfg.max_time_offset
     if cfg.patch_size is not None:
         config.pipeline.datamanager.patch_size = cfg.patch_size
     if cfg.lidar_rays is not None:
@@ -185,6 +190,16 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         print(format_error_table("errors of the priors (before):", before))
         print(format_error_table("errors after calibration:", after))
         summary["errors_before"], summary["errors_after"] = before, after
+    bounds = optimizer.config
+    for i, name in enumerate(optimizer.rig.data.sensor_names):
+        hit = []
+        if bounds.max_time_offset > 0 and abs(float(optimizer.rig.time_offset[i])) >= 0.999 * bounds.max_time_offset:
+            hit.append(f"time offset (±{bounds.max_time_offset * 1000:.0f} ms)")
+        if bounds.max_translation > 0 and float(optimizer.rig.translation[i].abs().max()) >= 0.999 * bounds.max_translation:
+            hit.append(f"translation (±{bounds.max_translation} m)")
+        if hit:
+            print(f"WARNING: {name} ran into its bound on {', '.join(hit)}: a runaway, do not trust its estimate")
+            summary.setdefault("hit_bounds", {})[name] = hit
     moving = still_moving(config.get_base_dir() / "calibration_history.csv")
     for name, spread in moving.items():
         print(f"WARNING: {name} is still moving over its last estimates ({spread}); run longer or check the data")
