@@ -1,7 +1,6 @@
 """moisst-export, moisst-eval and moisst-report on a short run of a tiny rig with LiDAR, plus the projection math."""
 
 import csv
-import hashlib
 import json
 import math
 import shutil
@@ -23,17 +22,10 @@ from moisst_ns.report import draw_points, lidar_points_world, nearest_lidar_fram
 from moisst_ns.rig.format import RigFormatError, load_calibration, load_lidar_scan, load_rig
 from moisst_ns.synth import SynthConfig, build_scene, make_path, make_rig
 
+from helpers import tree_hash
+
 BIN = Path(sys.executable).parent
 LOG_EVERY = 3
-
-
-def tree_hash(folder: Path) -> str:
-    digest = hashlib.sha256()
-    for path in sorted(folder.rglob("*")):
-        if path.is_file():
-            digest.update(str(path.relative_to(folder)).encode())
-            digest.update(path.read_bytes())
-    return digest.hexdigest()
 
 
 def calibrate(rig: Path, out: Path, steps: int) -> Path:

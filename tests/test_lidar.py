@@ -112,19 +112,20 @@ def write_rig(tmp_path, scan: np.ndarray, name="000000.npy"):
     from moisst_ns.rig.calibration import RigData
     from moisst_ns.rig.format import load_rig
 
-    return RigData.from_rig(load_rig(tmp_path))
+    full = load_rig(tmp_path)
+    return RigData.from_rig(full), full
 
 
 def test_nan_points_are_dropped_and_counted(tmp_path, capsys):
     scan = np.array([[5.0, 0, 0], [np.nan, 1, 1], [0, 7.0, 0], [np.inf, 0, 0]], dtype=np.float32)
-    data = write_rig(tmp_path, scan)
-    points, stamps, sensors = load_lidar_points(data, tmp_path, 1.0, 80.0)
+    data, full = write_rig(tmp_path, scan)
+    points, stamps, sensors = load_lidar_points(data, full, 1.0, 80.0)
     assert points.shape == (2, 3) and torch.all(sensors == 1)
     assert torch.allclose(stamps, torch.tensor([0.5, 0.5], dtype=torch.float64))
     assert "dropped 2 points" in capsys.readouterr().out
 
 
 def test_scan_empty_after_range_filter_is_an_error(tmp_path):
-    data = write_rig(tmp_path, np.array([[0.2, 0, 0], [0, 0.5, 0]], dtype=np.float32))
+    data, full = write_rig(tmp_path, np.array([[0.2, 0, 0], [0, 0.5, 0]], dtype=np.float32))
     with pytest.raises(RigFormatError, match="no points left"):
-        load_lidar_points(data, tmp_path, 1.0, 80.0)
+        load_lidar_points(data, full, 1.0, 80.0)

@@ -1,6 +1,5 @@
 """A finished run opens again (torch >= 2.6 checkpoints), ns-export cameras writes calibrated poses, CLI errors."""
 
-import hashlib
 import json
 import subprocess
 import sys
@@ -14,16 +13,9 @@ from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
 from moisst_ns.rig.format import load_calibration
 from moisst_ns.synth import SynthConfig, make_rig
 
+from helpers import tree_hash
+
 BIN = Path(sys.executable).parent
-
-
-def tree_hash(folder: Path) -> str:
-    digest = hashlib.sha256()
-    for path in sorted(folder.rglob("*")):
-        if path.is_file():
-            digest.update(str(path.relative_to(folder)).encode())
-            digest.update(path.read_bytes())
-    return digest.hexdigest()
 
 
 @pytest.fixture(scope="module")

@@ -88,17 +88,17 @@ def still_moving(history: Path, last: int = 10, max_cm: float = 1.0, max_deg: fl
     """Sensors whose last ``last`` logged estimates spread (std) more than the thresholds."""
     import numpy as np
 
+    from moisst_ns.cli.evaluate import ESTIMATE_COLUMNS, EvalError, read_history
+
     if not history.is_file():
         return {}
-    rows: Dict[str, list] = {}
-    with history.open() as handle:
-        header = handle.readline().strip().split(",")
-        for line in handle:
-            values = dict(zip(header, line.strip().split(",")))
-            rows.setdefault(values["sensor"], []).append([float(values[k]) for k in ("x", "y", "z", "roll", "pitch", "yaw", "delta_ms")])
+    try:
+        columns = read_history(history)
+    except EvalError:  # nothing logged yet
+        return {}
     out = {}
-    for name, values in rows.items():
-        tail = np.asarray(values[-last:])
+    for name, cols in columns.items():
+        tail = np.stack([cols[c][-last:] for c in ESTIMATE_COLUMNS], axis=1)
         if len(tail) < 2:
             continue
         std = tail.std(axis=0)

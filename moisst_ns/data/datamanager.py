@@ -10,6 +10,7 @@ is the measured range (``batch["lidar_range"]``, model units).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Dict, Tuple, Type
 
 import numpy as np
@@ -21,7 +22,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from moisst_ns.rig.format import load_lidar_scan
+from moisst_ns.rig.format import Rig, RigFormatError, load_lidar_scan, load_rig
 
 LIDAR_KEYS = ("is_lidar", "lidar_point", "lidar_stamp", "lidar_sensor")
 
@@ -81,11 +82,12 @@ class MoisstDataManager(VanillaDataManager):
     def __init__(self, config: MoisstDataManagerConfig, *args, **kwargs):
         super().__init__(config, *args, **kwargs)
         self.rig = self.train_dataparser_outputs.metadata["moisst_rig"]
-        self.lidar_points, self.lidar_stamps, self.lidar_sensor = load_lidar_points(
-            self.rig, self.train_dataparser_outputs.metadata["moisst_rig_root"], config.lidar_min_range, config.lidar_max_range
-        )
+        frame_sensor = torch.as_tensor(self.rig.extra["frame_sensor_index"])
+        self.frame_is_reference = frame_sensor == self.rig.reference_index
+        full = load_rig(Path(self.train_dataparser_outputs.metadata["moisst_rig_root"]), check_files=False)
+        self.lidar_points, self.lidar_stamps, self.lidar_sensor = load_lidar_points(self.rig, full, config.lidar_min_range, config.lidar_max_range)
         if config.lidar_reference_view_only and self.lidar_points.shape[0] > 0:
-            keep = reference_view_mask(self.rig, self.train_dataparser_outputs.metadata["moisst_rig_root"], self.lidar_points, self.lidar_sensor)
+            keep = reference_view_mask(self.rig, full, self.lidar_points, self.lidar_sensor)
             if keep is not None and bool(keep.any()):
                 CONSOLE.print(f"LiDAR: {int(keep.sum())} of {keep.numel()} points inside the reference camera's view")
                 self.lidar_points, self.lidar_stamps, self.lidar_sensor = self.lidar_points[keep], self.lidar_stamps[keep], self.lidar_sensor[keep]
@@ -111,8 +113,7 @@ class MoisstDataManager(VanillaDataManager):
         if fraction is None or not isinstance(image_batch["image"], torch.Tensor):
             batch = sampler.sample(image_batch)
         else:
-            frame_sensor = torch.as_tensor(self.rig.extra["frame_sensor_index"])
-            is_ref = (frame_sensor[image_batch["image_idx"].cpu()] == self.rig.reference_index).to(image_batch["image_idx"].device)
+            is_ref = self.frame_is_reference[image_batch["image_idx"].cpu()].to(image_batch["image_idx"].device)
             total = sampler.num_rays_per_batch
             unit = max(self.config.patch_size, 1) ** 2
             n_ref = int(round(total * fraction / unit)) * unit
@@ -188,14 +189,9 @@ def lidar_ray_bundle(
     )
 
 
-def reference_view_mask(rig, root, points: Tensor, sensor: Tensor):
+def reference_view_mask(rig, full: Rig, points: Tensor, sensor: Tensor):
     """Points that fall inside the reference camera's image when moved into its frame with the prior extrinsics
-    (None when the reference is not a camera)."""
-    from pathlib import Path
-
-    from moisst_ns.rig.format import load_rig
-
-    full = load_rig(Path(root), check_files=False)
+    (None when the reference is not a camera). ``full`` is the loaded rig.json (for the intrinsics)."""
     ref = full.sensors[full.reference_sensor]
     if ref.type != "camera":
         return None
@@ -208,13 +204,11 @@ def reference_view_mask(rig, root, points: Tensor, sensor: Tensor):
     return (z > 0.5) & (u >= 0) & (u < k["w"]) & (v >= 0) & (v < k["h"])
 
 
-def load_lidar_points(rig, root, min_range: float, max_range: float):
-    """All LiDAR points of the rig: (P, 3) float32 points, (P,) float64 own-clock times since t0, (P,) sensor ids."""
-    from pathlib import Path
+def load_lidar_points(rig, full: Rig, min_range: float, max_range: float):
+    """All LiDAR points of the rig: (P, 3) float32 points, (P,) float64 own-clock times since t0, (P,) sensor ids.
 
-    from moisst_ns.rig.format import RigFormatError, load_rig
-
-    full = load_rig(Path(root), check_files=False)
+    ``rig`` is the dataparser's RigData (sensor order, t0), ``full`` the loaded rig.json (frames and files).
+    """
     points, stamps, sensors = [], [], []
     dropped_total = 0
     for frame in full.frames:
