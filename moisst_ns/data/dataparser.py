@@ -51,7 +51,10 @@ class MoisstRigDataParser(DataParser):
     config: MoisstRigDataParserConfig
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        root = Path(self.config.data)
+        return self.rig_outputs(Path(self.config.data), split)
+
+    def rig_outputs(self, root: Path, split: str) -> DataparserOutputs:
+        """Dataparser outputs of the ``moisst-rig/1`` dataset in ``root``."""
         rig = load_rig(root)
         gt_file = rig.root / "ground_truth.json"
         truth = load_calibration(gt_file) if self.config.load_ground_truth and gt_file.is_file() else None

@@ -1,0 +1,88 @@
+"""nerfstudio dataparser ``moisst-kitti360``: a KITTI-360 sequence straight from its download layout.
+
+Thin glue: the sequence's frame range is converted once by ``moisst_ns.kitti360.convert`` into a cache folder
+(never into the KITTI-360 folder) and read as ``moisst-rig/1``. Usage::
+
+    ns-train moisst-lite moisst-kitti360 --data /data/KITTI-360 --sequence 2013_05_28_drive_0000_sync \\
+        --first-frame 3000 --last-frame 3099 --downscale 4 --perturb paper
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal, Optional, Tuple, Type
+
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+
+from moisst_ns.data.dataparser import MoisstRigDataParser, MoisstRigDataParserConfig
+from moisst_ns.kitti360 import CAMERAS, Kitti360Config, convert
+
+
+@dataclass
+class MoisstKitti360DataParserConfig(MoisstRigDataParserConfig):
+    """Reads one KITTI-360 sequence (frame range) from the dataset's download layout."""
+
+    _target: Type = field(default_factory=lambda: MoisstKitti360DataParser)
+    data: Path = Path("data/KITTI-360")
+    """KITTI-360 root folder (holds calibration/, data_poses/, data_2d_raw/, data_3d_raw/). Read only."""
+    sequence: str = "2013_05_28_drive_0000_sync"
+    """Sequence folder name."""
+    first_frame: int = 0
+    """First frame index (inclusive)."""
+    last_frame: Optional[int] = None
+    """Last frame index (inclusive); default first_frame + 99."""
+    stride: int = 1
+    """Keep every stride-th frame of the range."""
+    cameras: Tuple[str, ...] = CAMERAS
+    """Cameras to include (image_00, the reference, is always included)."""
+    lidar: bool = True
+    """Include the Velodyne."""
+    downscale: int = 1
+    """Shrink every image by this integer factor."""
+    fisheye_fov: float = 100.0
+    """Horizontal field of view (degrees) of the pinhole images the fisheye cameras are rectified to."""
+    perturb: Literal["none", "paper"] = "none"
+    """Priors: the dataset's calibration ('none') or perturbed as in MOISST section IV ('paper')."""
+    seed: int = 0
+    """Seed of the perturbation signs."""
+    cache_dir: Path = field(default_factory=lambda: Path.home() / ".cache" / "moisst-ns" / "kitti360")
+    """Where the converted moisst-rig/1 dataset is kept (one folder per distinct conversion)."""
+
+
+def conversion_for(config: MoisstKitti360DataParserConfig) -> Kitti360Config:
+    """The converter settings of a dataparser config, writing into a cache folder keyed by those settings."""
+    conv = Kitti360Config(
+        root=Path(config.data).resolve(), sequence=config.sequence, first_frame=config.first_frame,
+        last_frame=config.last_frame, stride=config.stride, cameras=tuple(config.cameras), lidar=config.lidar,
+        downscale=config.downscale, fisheye_fov=config.fisheye_fov, perturb=config.perturb, seed=config.seed,
+    )
+    key = json.dumps({k: str(v) for k, v in asdict(conv).items() if k != "out"}, sort_keys=True)
+    digest = hashlib.sha1(key.encode()).hexdigest()[:12]
+    conv.out = Path(config.cache_dir) / f"{config.sequence}_{config.first_frame}_{digest}"
+    conv.overwrite = True
+    return conv
+
+
+@dataclass
+class MoisstKitti360DataParser(MoisstRigDataParser):
+    """Dataparser for KITTI-360 (via a cached ``moisst-rig/1`` conversion)."""
+
+    config: MoisstKitti360DataParserConfig
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        conv = conversion_for(self.config)
+        done = conv.out / ".moisst-kitti360-done"
+        if not done.is_file():
+            convert(conv)
+            done.write_text("converted\n")
+        return self.rig_outputs(conv.out, split)
+
+
+moisst_kitti360_dataparser = DataParserSpecification(
+    config=MoisstKitti360DataParserConfig(),
+    description="KITTI-360 sequence from its download layout (converted to moisst-rig/1 in a cache folder).",
+)
