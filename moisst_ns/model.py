@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Tuple, Type
@@ -220,7 +221,10 @@ class MoisstModel(NerfactoModel):
         if self.config.print_calibration:
             CONSOLE.print(f"[calibration] step {step}: " + " | ".join(self.camera_optimizer.change_summary()))
         columns = ["step", "sensor", "x", "y", "z", "roll", "pitch", "yaw", "delta_ms"]
-        columns += ["err_translation_cm", "err_rotation_deg", "err_time_ms"]
+        columns += ["err_translation_cm", "err_rotation_deg", "err_time_ms", "elapsed_s"]
+        if not hasattr(self, "_log_start"):
+            self._log_start = time.perf_counter()
+        summary = {n: dict(v, elapsed_s=time.perf_counter() - self._log_start) for n, v in summary.items()}
         new = not path.exists()
         with path.open("a", newline="") as handle:
             writer = csv.writer(handle)

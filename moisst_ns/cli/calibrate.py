@@ -45,6 +45,12 @@ class CalibrateConfig:
     """Sample camera pixels as P x P patches (needed by the patch losses); the method's default when omitted."""
     lidar_rays: Optional[int] = None
     """LiDAR points per step (0: cameras only); the method's default when omitted."""
+    rays: Optional[int] = None
+    """Camera pixels per step; the method's default when omitted."""
+    extrinsics: bool = True
+    """Optimise the extrinsics; --no-extrinsics keeps them at the priors (paper Tables II and V: temporal only)."""
+    time_offsets: bool = True
+    """Optimise the time offsets; --no-time-offsets keeps them at the priors (paper Tables I and V: spatial only)."""
     report: bool = True
     """Write diagnostics to OUT/report: LiDAR points over the images with prior vs calibrated extrinsics, the
     same over a model render, convergence plots, report.md (same as ``moisst-report``)."""
@@ -149,6 +155,13 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         config.pipeline.datamanager.patch_size = cfg.patch_size
     if cfg.lidar_rays is not None:
         config.pipeline.datamanager.lidar_rays_per_batch = cfg.lidar_rays
+    if cfg.rays is not None:
+        config.pipeline.datamanager.train_num_rays_per_batch = cfg.rays
+        config.pipeline.datamanager.eval_num_rays_per_batch = cfg.rays
+    if not cfg.extrinsics and not cfg.time_offsets:
+        fail("--no-extrinsics and --no-time-offsets together leave nothing to calibrate")
+    model.camera_optimizer.optimize_extrinsics = cfg.extrinsics
+    model.camera_optimizer.optimize_time_offsets = cfg.time_offsets
     config.viewer.quit_on_train_completion = True
     config.viewer.websocket_host = cfg.viewer_host
     config.vis = "viewer+tensorboard" if cfg.viewer else "tensorboard"

@@ -137,7 +137,7 @@ def read_history(path: Path) -> Dict[str, Dict[str, np.ndarray]]:
         missing = [c for c in ("step", "sensor") + ESTIMATE_COLUMNS if c not in header]
         if missing:
             raise EvalError(f"{path}: header: missing column(s) {', '.join(missing)}")
-        columns = ("step",) + ESTIMATE_COLUMNS + tuple(c for c in ERROR_COLUMNS if c in header)
+        columns = ("step",) + ESTIMATE_COLUMNS + tuple(c for c in ERROR_COLUMNS + ("elapsed_s",) if c in header)
         for lineno, row in enumerate(reader, start=2):
             entry = out.setdefault(row["sensor"], {c: [] for c in columns})
             for c in columns:
@@ -146,7 +146,7 @@ def read_history(path: Path) -> Dict[str, Dict[str, np.ndarray]]:
                     value = float(cell) if cell else math.nan
                 except ValueError:
                     raise EvalError(f"{path}: line {lineno}: column {c}: not a number {cell!r}") from None
-                if c not in ERROR_COLUMNS and not cell:
+                if c not in ERROR_COLUMNS + ("elapsed_s",) and not cell:
                     raise EvalError(f"{path}: line {lineno}: column {c}: empty")
                 entry[c].append(value)
     if not out:

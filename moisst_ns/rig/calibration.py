@@ -190,3 +190,39 @@ def calibration_report_errors(estimate: Calibration, truth: Calibration) -> Dict
             "time_ms": abs(estimate.time_offset[name] - truth.time_offset[name]) * 1000.0,
         }
     return out
+
+
+def frame_poses(data: RigData, calibration: Calibration, sensor: str, stamps: np.ndarray) -> Float[Tensor, "num_frames 4 4"]:
+    """Eq. 2 with a given calibration: ``world_T_sensor`` of a sensor's frames (metres, float64).
+
+    Args:
+        data: the rig (its reference trajectory).
+        calibration: extrinsics and time offsets to use (an estimate, the priors or the truth).
+        sensor: sensor name.
+        stamps: (N,) the frames' own-clock timestamps, absolute seconds.
+
+    Returns:
+        (N, 4, 4) poses.
+    """
+    traj = data.trajectory()
+    t = torch.as_tensor(np.asarray(stamps, dtype=np.float64) - data.t0 + calibration.time_offset[sensor])
+    return sensor_pose(traj(t), torch.as_tensor(calibration.T_ref_sensor[sensor], dtype=torch.float64))
+
+
+def frame_pose_errors(
+    poses: Float[Tensor, "num_frames 4 4"], truth: Float[Tensor, "num_frames 4 4"]
+) -> Dict[str, float]:
+    """Per-frame pose errors (paper Table VI): mean and std over frames of the translation (cm) and rotation (deg)
+    distance between estimated and true ``world_T_sensor``.
+
+    Args:
+        poses: estimated poses of a sensor's frames.
+        truth: their true poses.
+
+    Returns:
+        ``{"translation_cm", "translation_cm_std", "rotation_deg", "rotation_deg_std"}``.
+    """
+    trans, rot = calibration_errors(poses.to(torch.float64), truth.to(torch.float64))
+    trans = trans * 100.0
+    return {"translation_cm": float(trans.mean()), "translation_cm_std": float(trans.std(unbiased=False)),
+            "rotation_deg": float(rot.mean()), "rotation_deg_std": float(rot.std(unbiased=False))}
