@@ -14,3 +14,6 @@ test: install
 
 test-fast: install
 	.venv/bin/python -m pytest -q -m "not slow" tests
+
+bench: install
+	.venv/bin/moisst-bench --quick --out outputs/bench
