@@ -115,19 +115,46 @@ def _seeds(raw: dict, which: str) -> List[Tuple[int, str]]:
 
 
 def make_bench_rig(out: Path, raw: dict, seed: int, layout: str, perturb: dict) -> Path:
-    """The moisst-synth rig of a (seed, layout, perturbation), generated once."""
-    from moisst_ns.synth import SynthConfig, make_rig
+    """The moisst-synth rig of a (seed, layout, perturbation), generated once.
 
-    t, r, d = perturb["translation"], perturb["rotation"], perturb["time"]
+    The scene, images and scans of a (seed, layout) are rendered once (``perturb none``); a perturbed variant
+    hard-links them (copies across file systems) and gets the rig.json ``moisst-synth`` would write for that
+    perturbation (the same seeded signs, ``synth.make_priors``).
+    """
+    from moisst_ns.synth import SynthConfig, make_priors, make_rig, make_truth
+
+    rig = raw["rig"]
+    t, r, d = (float(perturb[k]) for k in ("translation", "rotation", "time"))
+    config = SynthConfig(out=out / "rigs" / f"{layout}-s{seed}-base", seed=seed, layout=layout, width=rig["width"],
+                         height=rig["height"], frames=rig["frames"], perturb="none")
+    if not (config.out / "rig.json").is_file():
+        if config.out.exists():
+            shutil.rmtree(config.out)
+        make_rig(config)
+    if not (t or r or d):
+        return config.out
     folder = out / "rigs" / f"{layout}-s{seed}-t{t:g}-r{r:g}-d{d:g}"
     if (folder / "rig.json").is_file():
         return folder
     if folder.exists():
         shutil.rmtree(folder)
-    rig = raw["rig"]
-    make_rig(SynthConfig(out=folder, seed=seed, layout=layout, width=rig["width"], height=rig["height"], frames=rig["frames"],
-                         perturb="paper" if (t or r or d) else "none", perturb_translation=float(t), perturb_rotation=float(r),
-                         perturb_time=float(d)))
+
+    def link(src: str, dst: str) -> None:
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+
+    shutil.copytree(config.out, folder, copy_function=link, ignore=shutil.ignore_patterns("rig.json"))
+    variant = SynthConfig(**{**config.__dict__, "out": folder, "perturb": "paper", "perturb_translation": t,
+                             "perturb_rotation": r, "perturb_time": d})
+    priors = make_priors(variant, make_truth(variant))
+    rig_json = json.loads((config.out / "rig.json").read_text())
+    for name, (prior, delta) in priors.items():
+        rig_json["sensors"][name]["T_ref_sensor"] = prior.tolist()
+        rig_json["sensors"][name]["time_offset"] = float(delta)
+    rig_json.setdefault("metadata", {}).update(perturb="paper", perturb_translation=t, perturb_rotation=r, perturb_time=d)
+    (folder / "rig.json").write_text(json.dumps(rig_json, indent=1) + "\n")
     return folder
 
 

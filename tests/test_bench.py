@@ -116,3 +116,19 @@ def test_micro_bench_fills_every_section(tmp_path):
     assert (tmp_path / "out" / "bench_error_vs_time.png").stat().st_size > 1000
     after = (REPO / "docs" / "benchmarks.md").read_bytes() if (REPO / "docs" / "benchmarks.md").exists() else None
     assert after == before  # --docs not given: the repository is not touched
+
+
+def test_perturbed_variant_rig_equals_what_moisst_synth_writes(tmp_path):
+    from moisst_ns.bench import make_bench_rig
+    from moisst_ns.synth import SynthConfig, make_rig
+
+    raw = {"rig": {"width": 48, "height": 36, "frames": 4}}
+    perturb = {"translation": 0.2, "rotation": 2.0, "time": 0.05}
+    variant = make_bench_rig(tmp_path / "bench", raw, 3, "plaza", perturb)
+    direct = make_rig(SynthConfig(out=tmp_path / "direct", seed=3, layout="plaza", width=48, height=36, frames=4, perturb="paper",
+                                  perturb_translation=0.2, perturb_rotation=2.0, perturb_time=0.05))
+    a, b = json.loads((variant / "rig.json").read_text()), json.loads((direct / "rig.json").read_text())
+    assert a["sensors"] == b["sensors"] and a["frames"] == b["frames"]
+    for rel in [f["file_path"] for f in b["frames"]] + ["reference_poses.txt", "ground_truth.json"]:
+        assert (variant / rel).read_bytes() == (direct / rel).read_bytes(), rel
+    assert make_bench_rig(tmp_path / "bench", raw, 3, "plaza", perturb) == variant  # generated once

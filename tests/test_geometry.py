@@ -110,3 +110,34 @@ def test_calibrated_extrinsic_composition_and_errors():
 def test_interpolation_needs_two_poses():
     with pytest.raises(ValueError):
         interpolate_trajectory(torch.zeros(1, dtype=F64), torch.eye(3, dtype=F64)[None], torch.zeros(1, 3, dtype=F64), torch.zeros(1))
+
+
+def test_per_frame_pose_errors_of_known_extrinsic_errors():
+    """A translation error v of the extrinsic moves every frame by |v|; a rotation error rotates every frame by
+    its angle; a time error moves frames along the trajectory by speed x dt (constant twist: exact)."""
+    from moisst_ns.rig.calibration import RigData, frame_pose_errors, frame_poses
+    from moisst_ns.rig.format import Calibration
+
+    times, rot, trans, _, _ = constant_twist_trajectory(num=8)
+    quats = roma.rotmat_to_unitquat(rot).numpy()
+    data = RigData(sensor_names=["ref", "cam"], sensor_types=["camera", "camera"], reference_index=0,
+                   prior_extrinsics=np.stack([np.eye(4)] * 2), prior_time_offsets=np.zeros(2),
+                   trajectory_stamps=times.numpy() + 100.0, trajectory_positions=trans.numpy(), trajectory_quats_xyzw=quats, t0=100.0)
+    true_ext = make_pose(roma.rotvec_to_rotmat(torch.tensor([0.1, 0.2, -0.1], dtype=F64)), torch.tensor([0.5, -0.3, 1.2], dtype=F64)).numpy()
+    truth = Calibration("ref", {"ref": np.eye(4), "cam": true_ext}, {"ref": 0.0, "cam": 0.02})
+    stamps = 100.0 + np.linspace(0.05, 0.6, 7)
+    true_poses = frame_poses(data, truth, "cam", stamps)
+    assert frame_pose_errors(true_poses, true_poses)["translation_cm"] == 0.0
+    shifted = true_ext.copy()
+    shifted[:3, 3] += [0.03, 0.0, -0.04]
+    err = frame_pose_errors(frame_poses(data, Calibration("ref", {"ref": np.eye(4), "cam": shifted}, truth.time_offset), "cam", stamps), true_poses)
+    assert err["translation_cm"] == pytest.approx(5.0, abs=1e-9) and err["translation_cm_std"] == pytest.approx(0.0, abs=1e-9)
+    assert err["rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+    turned = true_ext.copy()
+    turned[:3, :3] = true_ext[:3, :3] @ roma.rotvec_to_rotmat(torch.tensor([0.0, 0.0, math.radians(2.0)], dtype=F64)).numpy()
+    err = frame_pose_errors(frame_poses(data, Calibration("ref", {"ref": np.eye(4), "cam": turned}, truth.time_offset), "cam", stamps), true_poses)
+    assert err["rotation_deg"] == pytest.approx(2.0, abs=1e-9)
+    late = Calibration("ref", truth.T_ref_sensor, {"ref": 0.0, "cam": 0.03})
+    err = frame_pose_errors(frame_poses(data, late, "cam", stamps), true_poses)
+    # 10 ms late on a constant twist: rotation error |omega| * 0.01 rad for every frame
+    assert err["rotation_deg"] == pytest.approx(math.degrees(0.01 * math.sqrt(0.1**2 + 0.2**2 + 0.7**2)), abs=1e-9)

@@ -87,6 +87,9 @@ def test_calibrate_cli_errors_are_one_line(tmp_path, short_run):
     assert result.returncode == 2 and "is a file" in result.stderr.strip().splitlines()[-1]
     result = subprocess.run([str(BIN / "moisst-calibrate"), str(rig), "--output-dir", str(rig / "x")], capture_output=True, text=True)
     assert result.returncode == 2 and "inside the dataset" in result.stderr
+    result = subprocess.run([str(BIN / "moisst-calibrate"), str(rig), "--output-dir", str(tmp_path / "o2"), "--no-extrinsics",
+                             "--no-time-offsets"], capture_output=True, text=True)
+    assert result.returncode == 2 and "leave nothing to calibrate" in result.stderr.strip().splitlines()[-1]
 
 
 def test_same_seed_same_calibration(short_run, tmp_path):
