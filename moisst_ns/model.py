@@ -301,17 +301,22 @@ class MoisstModel(NerfactoModel):
             if keep is not None and keep.any():
                 batch = dict(batch)
                 batch["image"] = batch["image"][keep]
+                if not bool(keep.all()):
+                    batch["num_patch_rays"] = 0  # the patch layout is broken by the filter: no patch losses
                 for key in ("rgb", "accumulation", "expected_depth"):
                     camera[key] = camera[key][keep.to(camera[key].device)]
         loss_dict = super().get_loss_dict(camera, batch, metrics_dict)
         patch = int(batch.get("patch_size", 1))
-        if self.training and patch > 1 and camera["rgb"].shape[0] % (patch * patch) == 0 and camera["rgb"].shape[0] > 0:
+        # patch rays come first in the batch (all camera rays when every ray is in a patch)
+        num_patch = int(batch.get("num_patch_rays", camera["rgb"].shape[0]))
+        if self.training and patch > 1 and num_patch % (patch * patch) == 0 and 0 < num_patch <= camera["rgb"].shape[0]:
             shape = (-1, patch, patch)
             if self.config.dssim_loss_mult > 0:
-                image = self.renderer_rgb.blend_background(batch["image"].to(self.device))
-                loss_dict["dssim_loss"] = self.config.dssim_loss_mult * dssim_loss(camera["rgb"].view(*shape, 3), image[..., :3].view(*shape, 3))
+                image = self.renderer_rgb.blend_background(batch["image"][:num_patch].to(self.device))
+                loss_dict["dssim_loss"] = self.config.dssim_loss_mult * dssim_loss(
+                    camera["rgb"][:num_patch].view(*shape, 3), image[..., :3].view(*shape, 3))
             if self.config.depth_smoothness_mult > 0:
-                depth = camera["expected_depth"].view(*shape)
+                depth = camera["expected_depth"][:num_patch].view(*shape)
                 loss_dict["depth_smoothness_loss"] = self.config.depth_smoothness_mult * depth_smoothness_loss(depth)
         if self.training and lidar is not None and "lidar_range" in batch and self._step >= self.config.depth_loss_start:
             ramp = 1.0

@@ -17,7 +17,7 @@ last = 1
 rig = { width = 48, height = 36, frames = 6 }
 seeds = [[0, "street"], [1, "plaza"]]
 target = { translation_cm = 1.0, rotation_deg = 0.05, time_ms = 0.5 }
-timing = [["moisst-lite", 4]]
+timing = [["moisst", 1]]
 baseline = { steps = 4, seeds = "first" }
 
 [[case]]
@@ -65,6 +65,7 @@ def test_shipped_scenarios_cover_the_paper_protocol():
         (lambda s: s.replace('rotation = 10.0', 'rotation = -1.0'), "case[1].perturb.rotation: must be a number >= 0"),
         (lambda s: s.replace('id = "rotation-10"', 'id = "combined"'), "case[1].id: missing or repeated"),
         (lambda s: s + "\n[[case]\n", "(toml)"),
+        (lambda s: s.replace('optimise = "temporal"', 'optimise = "temporal"\npatch_size = 0'), "case[2].patch_size: must be a positive integer"),
     ],
 )
 def test_bad_scenario_file_gets_one_line_error(tmp_path, edit, message):
@@ -111,6 +112,7 @@ def test_micro_bench_fills_every_section(tmp_path):
     only_t = next(c for c in saved["cases"] if c["id"] == "only-temporal")
     assert only_t["pooled"]["cam_front_right"]["translation_cm"][0] == pytest.approx(86.6, abs=0.1)
     timing = result["timing"][0]
+    assert timing["method_run"] == ["moisst", "moisst"]
     assert timing["moisst_s"] > 0 and timing["nerfacto_s"] > 0 and timing["ratio"] == pytest.approx(timing["moisst_s"] / timing["nerfacto_s"])
     assert set(result["baseline"]["frame_errors"]) == {"cam_front_right", "cam_left"}
     assert (tmp_path / "out" / "bench_error_vs_time.png").stat().st_size > 1000

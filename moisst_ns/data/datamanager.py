@@ -48,6 +48,10 @@ class MoisstDataManagerConfig(VanillaDataManagerConfig):
     calibration, so the scene keeps being trained by a fair number of rays)."""
     lidar_start_step: int = 0
     """LiDAR points are sampled from this step on (set to where the depth loss starts)."""
+    patch_fraction: float = 0.25
+    """With ``patch_size > 1``: share of the camera rays sampled as P x P patches (the DSSIM and depth-smoothness
+    losses of eq. 13 use them); the rest are single pixels spread over the images. All-patch sampling (1.0)
+    concentrates the rays on few image locations, which measurably slowed the calibration at 1024 rays."""
     lidar_reference_view_only: bool = True
     """Keep only the points inside the reference camera's field of view (by the priors), so LiDAR rays land
     where the scene is observed by the sensor whose poses are known; a 360 degree scan otherwise mostly hits
@@ -92,6 +96,27 @@ class MoisstDataManager(VanillaDataManager):
                 CONSOLE.print(f"LiDAR: {int(keep.sum())} of {keep.numel()} points inside the reference camera's view")
                 self.lidar_points, self.lidar_stamps, self.lidar_sensor = self.lidar_points[keep], self.lidar_stamps[keep], self.lidar_sensor[keep]
         self.lidar_generator = torch.Generator().manual_seed(int(kwargs.get("seed", 0)) + 12345)
+        self.single_pixel_sampler = None
+        if config.patch_size > 1 and config.patch_fraction < 1.0:
+            from nerfstudio.data.pixel_samplers import PixelSamplerConfig
+
+            self.single_pixel_sampler = PixelSamplerConfig(num_rays_per_batch=config.train_num_rays_per_batch).setup()
+
+    def _sample(self, sampler, image_batch: Dict, count: int, fraction) -> Dict | None:
+        """``count`` rays (pixels or patches, by ``sampler``), a share ``fraction`` of them from the reference camera
+        (None: from all images uniformly)."""
+        if count <= 0:
+            return None
+        unit = max(getattr(sampler.config, "patch_size", 1), 1) ** 2
+        if fraction is None:
+            return sample_images(sampler, image_batch, torch.arange(len(image_batch["image_idx"])), count)
+        is_ref = self.frame_is_reference[image_batch["image_idx"].cpu()].to(image_batch["image_idx"].device)
+        n_ref = int(round(count * fraction / unit)) * unit
+        parts = []
+        for mask, n in ((is_ref, n_ref), (~is_ref, count - n_ref)):
+            if n > 0 and bool(mask.any()):
+                parts.append(sample_images(sampler, image_batch, torch.nonzero(mask)[:, 0], n))
+        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
     @property
     def has_lidar(self) -> bool:
@@ -108,20 +133,20 @@ class MoisstDataManager(VanillaDataManager):
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
         self.train_count += 1
         image_batch = next(self.iter_train_image_dataloader)
-        sampler = self.train_pixel_sampler
         fraction = self.reference_fraction(step)
-        if fraction is None or not isinstance(image_batch["image"], torch.Tensor):
-            batch = sampler.sample(image_batch)
-        else:
-            is_ref = self.frame_is_reference[image_batch["image_idx"].cpu()].to(image_batch["image_idx"].device)
-            total = sampler.num_rays_per_batch
-            unit = max(self.config.patch_size, 1) ** 2
-            n_ref = int(round(total * fraction / unit)) * unit
-            parts = []
-            for mask, count in ((is_ref, n_ref), (~is_ref, total - n_ref)):
-                if count > 0 and bool(mask.any()):
-                    parts.append(sample_images(sampler, image_batch, torch.nonzero(mask)[:, 0], count))
+        total = self.train_pixel_sampler.num_rays_per_batch
+        patch = max(self.config.patch_size, 1)
+        if self.single_pixel_sampler is not None and isinstance(image_batch["image"], torch.Tensor):
+            n_patch = int(round(total * self.config.patch_fraction / patch**2)) * patch**2
+            parts = [self._sample(self.train_pixel_sampler, image_batch, n_patch, fraction),
+                     self._sample(self.single_pixel_sampler, image_batch, total - n_patch, fraction)]
+            parts = [p for p in parts if p is not None]
             batch = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+            batch["num_patch_rays"] = n_patch
+        elif fraction is None or not isinstance(image_batch["image"], torch.Tensor):
+            batch = self.train_pixel_sampler.sample(image_batch)
+        else:
+            batch = self._sample(self.train_pixel_sampler, image_batch, total, fraction)
         ray_bundle = self.train_ray_generator(batch["indices"])
         num_camera = len(ray_bundle)
         batch["num_camera_rays"] = num_camera
