@@ -13,6 +13,7 @@ def datamanager(tmp_path_factory):
     config = moisst_trainer_config("moisst-lite", 100)
     dm_config = config.pipeline.datamanager
     dm_config.patch_size = 4  # moisst-lite's default is 1 (no patch losses); moisst's is 8
+    dm_config.train_num_rays_per_batch = 512  # nerfstudio's patch sampler alone would round this to 0
     dm_config.data = root
     dm_config.dataparser.data = root
     torch.manual_seed(0)

@@ -96,6 +96,12 @@ class MoisstDataManager(VanillaDataManager):
                 CONSOLE.print(f"LiDAR: {int(keep.sum())} of {keep.numel()} points inside the reference camera's view")
                 self.lidar_points, self.lidar_stamps, self.lidar_sensor = self.lidar_points[keep], self.lidar_stamps[keep], self.lidar_sensor[keep]
         self.lidar_generator = torch.Generator().manual_seed(int(kwargs.get("seed", 0)) + 12345)
+        if config.patch_size > 1:
+            # nerfstudio 1.1.5's PatchPixelSampler rounds the batch with its default patch size (32) before it
+            # takes ours, so e.g. 512 rays became 0: round again with the real patch size.
+            self.train_pixel_sampler.set_num_rays_per_batch(config.train_num_rays_per_batch)
+            if getattr(self, "eval_pixel_sampler", None) is not None:
+                self.eval_pixel_sampler.set_num_rays_per_batch(config.eval_num_rays_per_batch)
         self.single_pixel_sampler = None
         if config.patch_size > 1 and config.patch_fraction < 1.0:
             from nerfstudio.data.pixel_samplers import PixelSamplerConfig
