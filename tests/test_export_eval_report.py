@@ -252,8 +252,8 @@ def test_moisst_eval_errors_are_one_line(run, tmp_path):
     no_errors = tmp_path / "run_without_truth"
     no_errors.mkdir()
     lines = (run["config"].parent / "calibration_history.csv").read_text().splitlines()
-    assert lines[0].split(",")[9:] == ["err_translation_cm", "err_rotation_deg", "err_time_ms"]
-    blanked = [",".join(line.split(",")[:9] + ["", "", ""]) for line in lines[1:]]  # as logged without ground truth
+    assert lines[0].split(",")[9:] == ["err_translation_cm", "err_rotation_deg", "err_time_ms", "elapsed_s"]
+    blanked = [",".join(line.split(",")[:9] + ["", "", ""] + line.split(",")[12:]) for line in lines[1:]]  # as logged without ground truth
     (no_errors / "calibration_history.csv").write_text("\n".join([lines[0]] + blanked) + "\n")
     cases = [
         ([tmp_path / "missing.json", truth], "missing.json: (file): file not found"),
