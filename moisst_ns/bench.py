@@ -244,6 +244,17 @@ def pooled(runs: List[dict], last: int) -> Dict[str, Dict[str, Tuple[float, floa
     return {s: {k: (float(np.mean(v)), float(np.std(v))) for k, v in keys.items()} for s, keys in values.items()}
 
 
+def merge_frame_errors(runs: List[Dict[str, dict]]) -> Dict[str, Dict[str, Tuple[float, float]]]:
+    """Per-frame pose errors of several runs (``frame_pose_errors`` per sensor) as (mean of the means, RMS of the
+    per-run stds) per sensor, for translation_cm and rotation_deg."""
+    merged: Dict[str, List[dict]] = {}
+    for run in runs:
+        for sensor, e in run.items():
+            merged.setdefault(sensor, []).append(e)
+    return {s: {m: (float(np.mean([e[m] for e in es])), float(np.sqrt(np.mean([e[m + "_std"] ** 2 for e in es]))))
+                for m in ("translation_cm", "rotation_deg")} for s, es in merged.items()}
+
+
 def time_to_target(run: dict, target: dict, cameras: List[str]) -> Optional[float]:
     """Wall seconds (from the first logged step) until every listed camera is within the target at once."""
     if "history" not in run or not cameras:
@@ -404,14 +415,7 @@ def run_bench(cfg: BenchConfig) -> dict:
             for s, e in r["errors_before"].items():
                 before.setdefault(s, []).append(e)
         before = {s: {k: float(np.mean([e[k] for e in es])) for k in ERR_KEYS} for s, es in before.items()}
-        frame = {}
-        for key in ("frame_errors", "frame_errors_prior"):
-            merged: Dict[str, dict] = {}
-            for r in ok:
-                for s, e in r[key].items():
-                    merged.setdefault(s, []).append(e)
-            frame[key] = {s: {m: (float(np.mean([e[m] for e in es])), float(np.sqrt(np.mean([e[m + '_std'] ** 2 for e in es]))))
-                              for m in ("translation_cm", "rotation_deg")} for s, es in merged.items()}
+        frame = {key: merge_frame_errors([r[key] for r in ok]) for key in ("frame_errors", "frame_errors_prior")}
         cases.append({"id": case["id"], "tables": case["tables"], "perturb": case["perturb"], "optimise": case.get("optimise", "both"),
                       "patch_size": case.get("patch_size"),
                       "losses": case.get("losses", []), "runs": runs, "pooled": pooled(ok, raw["last"]), "before": before,
@@ -426,16 +430,13 @@ def run_bench(cfg: BenchConfig) -> dict:
     # Baseline: nerfacto's per-frame pose optimiser on the combined rigs.
     base = raw.get("baseline")
     if base:
-        merged: Dict[str, list] = {}
+        runs = []
         for seed, layout in _seeds(raw, base.get("seeds", "first")):
             rig = make_bench_rig(out, raw, seed, layout, combined["perturb"])
             print(f"[moisst-bench] baseline nerfacto SO3xR3, seed {seed} ({layout})", flush=True)
             b = nerfacto_case(rig, out / "runs" / f"nerfacto-so3xr3-{layout}-s{seed}", raw, base.get("steps", raw["steps"]), "SO3xR3")
-            for s, e in b["frame_errors"].items():
-                merged.setdefault(s, []).append(e)
-        result["baseline"] = {"frame_errors": {
-            s: {m: (float(np.mean([e[m] for e in es])), float(np.sqrt(np.mean([e[m + '_std'] ** 2 for e in es]))))
-                for m in ("translation_cm", "rotation_deg")} for s, es in merged.items()}}
+            runs.append(b["frame_errors"])
+        result["baseline"] = {"frame_errors": merge_frame_errors(runs)}
 
     # Speed: MOISST preset (cameras only, and with LiDAR) vs nerfacto with the same field and camera rays.
     result["timing"] = []

@@ -555,7 +555,7 @@ def reference_trajectory(paths: Kitti360Paths, calib: Kitti360Calibration, frame
 
 
 def _perturbed(config: Kitti360Config, T_ref: Dict[str, np.ndarray]) -> Dict[str, Tuple[np.ndarray, float]]:
-    from moisst_ns.synth import perturbation_rotation
+    from moisst_ns.synth import paper_perturbation
 
     rng = np.random.default_rng(config.seed)
     priors = {}
@@ -564,10 +564,8 @@ def _perturbed(config: Kitti360Config, T_ref: Dict[str, np.ndarray]) -> Dict[str
         if name == REFERENCE or config.perturb == "none":
             priors[name] = (T_ref[name].copy(), 0.0)
             continue
-        prior = T_ref[name].copy()
-        prior[:3, :3] = T_ref[name][:3, :3] @ perturbation_rotation(signs[3:6], config.perturb_rotation)
-        prior[:3, 3] = T_ref[name][:3, 3] + signs[:3] * config.perturb_translation
-        priors[name] = (prior, float(signs[6] * config.perturb_time))
+        priors[name] = paper_perturbation(T_ref[name], 0.0, signs, config.perturb_translation, config.perturb_rotation,
+                                          config.perturb_time)
     return priors
 
 
@@ -612,9 +610,9 @@ def convert(config: Kitti360Config) -> Path:
     calib = read_calibration(paths, cameras, config.lidar)
     sensors = cameras + ([VELODYNE] if config.lidar else [])
     stamps = {s: sensor_stamps(paths, s, frames) for s in sensors}
-    origin = int(read_timestamps(paths.timestamps(REFERENCE))[0])
-    pose_idx, poses, pose_source = reference_trajectory(paths, calib, frames, config.pose_margin)
     ref_all = read_timestamps(paths.timestamps(REFERENCE))
+    origin = int(ref_all[0])
+    pose_idx, poses, pose_source = reference_trajectory(paths, calib, frames, config.pose_margin)
     if pose_idx[-1] >= len(ref_all):
         raise Kitti360Error(pose_source, "frame index",
                             f"pose of frame {int(pose_idx[-1])} but {paths.timestamps(REFERENCE)} has {len(ref_all)} timestamps")

@@ -131,6 +131,25 @@ def perturbation_rotation(signs: Sequence[float], degrees: float) -> np.ndarray:
     return rot_x(signs[0] * a) @ rot_y(signs[1] * a) @ rot_z(signs[2] * a)
 
 
+def paper_perturbation(T_ref_sensor: np.ndarray, time_offset: float, signs: Sequence[float], translation: float,
+                       rotation_deg: float, time: float) -> Tuple[np.ndarray, float]:
+    """The MOISST paper's prior perturbation (section IV) of one sensor.
+
+    Args:
+        T_ref_sensor: true extrinsic (4x4).
+        time_offset: true delta, seconds.
+        signs: 7 signs (+-1): translation x, y, z; rotation about x, y, z; time.
+        translation: metres per axis. rotation_deg: degrees about each axis. time: seconds.
+
+    Returns:
+        (prior extrinsic ``[R Rx Ry Rz | t + s * translation]``, prior delta ``time_offset + s * time``).
+    """
+    prior = T_ref_sensor.copy()
+    prior[:3, :3] = T_ref_sensor[:3, :3] @ perturbation_rotation(signs[3:6], rotation_deg)
+    prior[:3, 3] = T_ref_sensor[:3, 3] + np.asarray(signs[:3]) * translation
+    return prior, float(time_offset + signs[6] * time)
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Vehicle path
 
@@ -660,10 +679,8 @@ def make_priors(config: SynthConfig, truth: Dict[str, SensorTruth]) -> Dict[str,
         if name == REFERENCE or config.perturb == "none":
             priors[name] = (t.T_ref_sensor.copy(), t.time_offset)
             continue
-        prior = t.T_ref_sensor.copy()
-        prior[:3, :3] = t.T_ref_sensor[:3, :3] @ perturbation_rotation(signs[3:6], config.perturb_rotation)
-        prior[:3, 3] = t.T_ref_sensor[:3, 3] + signs[:3] * config.perturb_translation
-        priors[name] = (prior, float(t.time_offset + signs[6] * config.perturb_time))
+        priors[name] = paper_perturbation(t.T_ref_sensor, t.time_offset, signs, config.perturb_translation,
+                                          config.perturb_rotation, config.perturb_time)
     return priors
 
 

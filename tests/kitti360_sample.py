@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from moisst_ns.kitti360 import MeiCamera, format_timestamp
+from moisst_ns.kitti360 import MeiCamera, _inv, _rot4, format_timestamp
 from moisst_ns.rig.format import load_lidar_scan, load_rig, load_tum
-from moisst_ns.synth import SynthConfig, build_scene, make_path, make_rig, rot_x, rot_y, rot_z
+from moisst_ns.synth import SynthConfig, _orthonormalise, build_scene, make_path, make_rig, rot_x, rot_y, rot_z
 
 SEQUENCE = "2013_05_28_drive_0000_sync"
 BASE_NS = int(np.datetime64("2013-05-28T08:00:00", "ns").astype(np.int64))
@@ -30,22 +30,8 @@ SKIPPED_POSE = 3  # "not every frame has a pose"
 
 
 def _orthonormal(pose: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(pose[:3, :3])
     out = pose.copy()
-    out[:3, :3] = u @ vt
-    return out
-
-
-def _inv(pose):
-    out = np.eye(4)
-    out[:3, :3] = pose[:3, :3].T
-    out[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
-    return out
-
-
-def _rot4(rotation):
-    out = np.eye(4)
-    out[:3, :3] = rotation
+    out[:3, :3] = _orthonormalise(pose[:3, :3])
     return out
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Literal, Optional, Tuple, Type
 
@@ -55,11 +55,10 @@ class MoisstKitti360DataParserConfig(MoisstRigDataParserConfig):
 
 def conversion_for(config: MoisstKitti360DataParserConfig) -> Kitti360Config:
     """The converter settings of a dataparser config, writing into a cache folder keyed by those settings."""
-    conv = Kitti360Config(
-        root=Path(config.data).resolve(), sequence=config.sequence, first_frame=config.first_frame,
-        last_frame=config.last_frame, stride=config.stride, cameras=tuple(config.cameras), lidar=config.lidar,
-        downscale=config.downscale, fisheye_fov=config.fisheye_fov, perturb=config.perturb, seed=config.seed,
-    )
+    shared = {f.name: getattr(config, f.name) for f in fields(Kitti360Config) if f.name not in ("root", "out", "overwrite")
+              and hasattr(config, f.name)}
+    conv = Kitti360Config(root=Path(config.data).resolve(), **shared)
+    conv.cameras = tuple(conv.cameras)
     key = json.dumps({k: str(v) for k, v in asdict(conv).items() if k != "out"}, sort_keys=True)
     digest = hashlib.sha1(key.encode()).hexdigest()[:12]
     conv.out = Path(config.cache_dir) / f"{config.sequence}_{config.first_frame}_{digest}"
