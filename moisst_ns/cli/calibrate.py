@@ -77,9 +77,18 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def fail(message: str) -> None:
-    print(f"moisst-calibrate: error: {message}", file=sys.stderr)
+def fail(message: str, prog: str = "moisst-calibrate") -> None:
+    print(f"{prog}: error: {message}", file=sys.stderr)
     raise SystemExit(2)
+
+
+def check_output_dir(dataset_root: Path, out: Path, prog: str = "moisst-calibrate") -> None:
+    """Refuse an output folder that is a file or lies inside the dataset (datasets are never written); create it."""
+    if out.exists() and not out.is_dir():
+        fail(f"{out}: --output-dir: is a file, not a folder", prog)
+    if out.resolve() == dataset_root.resolve() or dataset_root.resolve() in out.resolve().parents:
+        fail(f"{out}: --output-dir: must not be inside the dataset folder {dataset_root} (datasets are never written)", prog)
+    out.mkdir(parents=True, exist_ok=True)
 
 
 def format_error_table(title: str, errors: Dict[str, Dict[str, float]]) -> str:
@@ -127,11 +136,7 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     except RigFormatError as err:
         fail(str(err))
     out = cfg.output_dir
-    if out.exists() and not out.is_dir():
-        fail(f"{out}: --output-dir: is a file, not a folder")
-    if out.resolve() == rig.root.resolve() or rig.root.resolve() in out.resolve().parents:
-        fail(f"{out}: --output-dir: must not be inside the dataset folder {rig.root} (datasets are never written)")
-    out.mkdir(parents=True, exist_ok=True)
+    check_output_dir(rig.root, out)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
 
