@@ -90,7 +90,10 @@ class MoisstModelConfig(NerfactoModelConfig):
     coarse_to_fine_start_levels: float = 2.0
     """Levels fully on at the start of the coarse-to-fine release."""
     depth_loss_mult: float = 20.0
-    """lambda_D of paper eq. 13: weight of the LiDAR depth loss (L2 on the expected ray depth, model units)."""
+    """lambda_D of paper eq. 13: weight of the LiDAR depth loss (L2 on the expected ray depth, model units).
+    Model units are metres x the dataparser's ``world_scale`` (the drive normalised into the unit box), so the weight
+    per square metre is ``lambda_D * world_scale**2`` and falls with the drive's extent (0.03 on the 50-frame
+    synthetic rig). moisst-floor measured a five-fold lower floor with 500 on the tiny rig; docs/method.md."""
     depth_loss_start: int = 0
     """Step from which the depth loss applies (paper: after 2 epochs of colour-only training)."""
     dssim_loss_mult: float = 0.1
