@@ -1,7 +1,8 @@
 """``ns-train moisst`` (paper settings) and ``ns-train moisst-lite`` (2 CPU cores), plus the ``moisst-rig`` dataparser.
 
 Schedules are expressed as fractions of the run and turned into steps by ``moisst_trainer_config`` so that a
-shorter or longer run (``moisst-calibrate --max-num-iterations``) keeps the same shape.
+shorter or longer run (``moisst-calibrate --max-num-iterations``) keeps the same shape; under ``ns-train ...
+--max-num-iterations N`` the model rescales them at set-up (``moisst_ns.model.rescale_schedules``).
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         hash_weight_decay_steps=int(0.1 * steps),
         depth_loss_start=int(0.04 * steps),
         depth_loss_ramp_steps=int(0.05 * steps),
+        schedule_steps=steps,
     )
     datamanager = MoisstDataManagerConfig(
         dataparser=MoisstRigDataParserConfig(),

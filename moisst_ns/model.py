@@ -72,6 +72,38 @@ def lidar_depth_loss(expected_depth: Float[Tensor, "num_rays"], measured_range: 
     return (expected_depth - measured_range.to(expected_depth)).pow(2).mean()
 
 
+MODEL_SCHEDULE_FIELDS = ("calibration_warmup_steps", "registration_steps", "depth_loss_start", "depth_loss_ramp_steps", "hash_weight_decay_steps")
+DATAMANAGER_SCHEDULE_FIELDS = ("reference_only_steps", "registration_steps", "lidar_start_step")
+
+
+def rescale_schedules(trainer_config, built_for: int, steps: int) -> None:
+    """Rescale, in place, every step-valued schedule of a moisst trainer config built for ``built_for`` steps to a
+    run of ``steps``: the model's phases, the datamanager's phases and the optimisers' decay lengths.
+
+    The model, datamanager and schedulers read these config objects at every step, so this works after set-up.
+    ``moisst_trainer_config(method, steps)`` gives the same values (to rounding) directly.
+    """
+    ratio = steps / built_for
+
+    def scaled(value: int) -> int:
+        return int(round(value * ratio))
+
+    model = trainer_config.pipeline.model
+    datamanager = trainer_config.pipeline.datamanager
+    for name in MODEL_SCHEDULE_FIELDS:
+        setattr(model, name, scaled(getattr(model, name)))
+    model.coarse_to_fine = tuple(scaled(v) for v in model.coarse_to_fine)
+    for name in DATAMANAGER_SCHEDULE_FIELDS:
+        setattr(datamanager, name, scaled(getattr(datamanager, name)))
+    for settings in trainer_config.optimizers.values():
+        scheduler = settings.get("scheduler")
+        if scheduler is not None and hasattr(scheduler, "max_steps"):
+            scheduler.max_steps = scaled(scheduler.max_steps)
+            if getattr(scheduler, "warmup_steps", 0):
+                scheduler.warmup_steps = scaled(scheduler.warmup_steps)
+    model.schedule_steps = steps
+
+
 @dataclass
 class MoisstModelConfig(NerfactoModelConfig):
     """nerfacto + MOISST rig calibration."""
@@ -118,6 +150,10 @@ class MoisstModelConfig(NerfactoModelConfig):
     hash_weight_decay_steps: int = 0
     """Step at which the hash grids' weight decay (set on the ``hash_grids`` optimiser) is removed (paper
     III-C.3: kept for the first epochs, then removed so finer detail can be learned)."""
+    schedule_steps: int = 0
+    """Run length the step-valued schedules above (and the datamanager's phases and the optimisers' decays) were
+    built for. When the trainer runs another length (``ns-train moisst-lite --max-num-iterations N``), every one is
+    rescaled by ``N / schedule_steps`` at set-up so the run keeps its shape. 0: never rescale."""
 
 
 class MoisstModel(NerfactoModel):
@@ -170,12 +206,14 @@ class MoisstModel(NerfactoModel):
             self.camera_optimizer.set_trainable(self.config.camera_optimizer.mode != "off")
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        trainer = training_callback_attributes.trainer
+        if trainer is not None and self.config.schedule_steps > 0 and trainer.config.max_num_iterations != self.config.schedule_steps:
+            rescale_schedules(trainer.config, self.config.schedule_steps, trainer.config.max_num_iterations)
         callbacks = super().get_training_callbacks(training_callback_attributes)
         callbacks.append(
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self._update_schedule, update_every_num_iters=1)
         )
         callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_step, update_every_num_iters=1))
-        trainer = training_callback_attributes.trainer
         if trainer is not None and self.config.calibration_log_every > 0:
             history = Path(trainer.base_dir) / "calibration_history.csv"
             callbacks.append(
