@@ -138,7 +138,8 @@ class MoisstModelConfig(NerfactoModelConfig):
     registration_steps: int = 0
     """Until this step, rays of non-reference sensors do not update the scene (their losses move only their
     calibration): the scene is built from the sensor whose poses are known (and the others register against it,
-    as in SOAC), so it cannot absorb their miscalibration. 0 disables it."""
+    as in SOAC), so it cannot absorb their miscalibration. 0 disables it; so does a LiDAR reference sensor (no
+    camera's poses are known then: every sensor trains jointly after the warm-up, as in the paper)."""
     registration_sensors: Literal["cameras", "all"] = "all"
     """Which non-reference sensors register against a detached scene during ``registration_steps``: only the
     cameras (LiDAR depth then shapes the scene, as in the paper) or every sensor."""
@@ -182,6 +183,9 @@ class MoisstModel(NerfactoModel):
                 for enc in self._hash_encodings:
                     enc.register_forward_hook(self._mask_levels)
         self._step = 0
+        # With a LiDAR as the reference sensor no camera's poses are known: no camera rays can build the scene alone,
+        # so the detached registration phase is skipped and every sensor trains jointly (the paper's schedule).
+        self._reference_is_camera = bool((self.camera_optimizer.frame_sensor == rig.reference_index).any())
         self._detached_pass = False
         self._warmup_active = self.config.calibration_warmup_steps > 0
         if self._warmup_active:
@@ -286,7 +290,8 @@ class MoisstModel(NerfactoModel):
         return sensor
 
     def get_outputs(self, ray_bundle):
-        if not (self.training and self._step < self.config.registration_steps) or self._detached_pass or self.camera_optimizer.rig is None:
+        registering = self.training and self._step < self.config.registration_steps and self._reference_is_camera
+        if not registering or self._detached_pass or self.camera_optimizer.rig is None:
             return super().get_outputs(ray_bundle)
         reference = self._ray_sensor(ray_bundle) == self.camera_optimizer.rig.data.reference_index
         if self.config.registration_sensors == "cameras" and "is_lidar" in ray_bundle.metadata:

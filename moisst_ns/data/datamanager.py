@@ -129,7 +129,10 @@ class MoisstDataManager(VanillaDataManager):
         return self.config.lidar_rays_per_batch > 0 and self.lidar_points.shape[0] > 0
 
     def reference_fraction(self, step: int):
-        """Share of camera rays from the reference camera at ``step`` (None: sample all images uniformly)."""
+        """Share of camera rays from the reference camera at ``step`` (None: sample all images uniformly, also
+        always when the reference sensor is a LiDAR: then every camera is sampled from the start)."""
+        if not bool(self.frame_is_reference.any()):
+            return None
         if step < self.config.reference_only_steps:
             return 1.0
         if step < self.config.registration_steps:
