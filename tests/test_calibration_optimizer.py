@@ -5,7 +5,6 @@ import shutil
 
 import numpy as np
 import pytest
-import roma
 import torch
 from PIL import Image
 
@@ -30,20 +29,6 @@ def setup(rig_dir, data_dir=None):
     return outputs, opt
 
 
-def set_to_truth(opt, truth):
-    """Set the corrections so the calibration equals the ground truth."""
-    rig = opt.rig
-    with torch.no_grad():
-        for i, name in enumerate(rig.data.sensor_names):
-            if i == rig.data.reference_index:
-                continue
-            prior = torch.as_tensor(rig.data.prior_extrinsics[i])
-            true = torch.as_tensor(truth.T_ref_sensor[name])
-            rig.rotvec[i] = roma.rotmat_to_rotvec(prior[:3, :3].T @ true[:3, :3]).float()
-            rig.translation[i] = (true[:3, 3] - prior[:3, 3]).float()
-            rig.time_offset[i] = truth.time_offset[name] - rig.data.prior_time_offsets[i]
-
-
 def test_zero_correction_is_identity(rig_dir):
     outputs, opt = setup(rig_dir)
     idx = torch.arange(len(outputs.cameras))
@@ -60,7 +45,7 @@ def test_regenerated_rays_hit_what_the_synthetic_camera_saw(rig_dir):
     truth = load_calibration(rig_dir / "ground_truth.json")
     meta = json.loads((rig_dir / "rig.json").read_text())["metadata"]
     scene = build_scene(SynthConfig(out=rig_dir, **{k: meta[k] for k in ("seed", "frames", "width", "height", "layout") if k in meta}))
-    set_to_truth(opt, truth)
+    opt.rig.set_corrections_to(truth)
     data = outputs.metadata["moisst_rig"]
     scale, center = data.extra["world_scale"], data.extra["world_center"]
     for cam_idx in range(0, len(outputs.cameras), 5):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from helpers import tree_hash
-from moisst_ns.cli.floor import FloorConfig, floor_errors, run_floor, truth_corrections
+from moisst_ns.cli.floor import FloorConfig, floor_errors, run_floor
 from moisst_ns.rig.calibration import RigCalibration, RigData
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.synth import SynthConfig, make_rig
@@ -22,19 +22,14 @@ def rig(tmp_path_factory) -> Path:
     return root
 
 
-def test_truth_corrections_give_the_truth_exactly(rig):
-    """From perturbed priors, the corrections set by truth_corrections reproduce ground_truth.json."""
+def test_set_corrections_to_the_truth_gives_the_truth(rig):
+    """From perturbed priors, RigCalibration.set_corrections_to(ground truth) reproduces ground_truth.json."""
     data = RigData.from_rig(load_rig(rig), load_calibration(rig / "ground_truth.json"))
-
-    class Holder:
-        pass
-
-    holder = Holder()
-    holder.rig = RigCalibration(data)
-    before = holder.rig.errors()
+    calibration = RigCalibration(data)
+    before = calibration.errors()
     assert min(e["translation_cm"] for n, e in before.items() if n != "cam_front") > 50.0
-    truth_corrections(holder)
-    after = holder.rig.errors()
+    calibration.set_corrections_to(data.ground_truth)
+    after = calibration.errors()
     for name, err in after.items():
         assert err["translation_cm"] < 1e-5 and err["rotation_deg"] < 1e-4 and err["time_ms"] < 1e-5, (name, err)  # float32 parameters
 

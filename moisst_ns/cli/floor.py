@@ -49,28 +49,6 @@ class FloorConfig:
     """torch CPU threads; torch's default when omitted."""
 
 
-def truth_corrections(optimizer) -> None:
-    """Set the corrections of every non-reference sensor so that its calibrated extrinsic and offset are the truth.
-
-    ``R = R_prior Exp(w)`` gives ``w = Log(R_prior^T R_true)``; ``t = t_prior + v`` gives ``v = t_true - t_prior``;
-    the offset correction is ``delta_true - delta_prior``.
-    """
-    import roma
-    import torch
-
-    rig = optimizer.rig
-    truth = rig.data.ground_truth
-    with torch.no_grad():
-        for i, name in enumerate(rig.data.sensor_names):
-            if i == rig.data.reference_index:
-                continue
-            true = torch.as_tensor(truth.T_ref_sensor[name], dtype=torch.float64)
-            prior = rig.prior_extrinsics[i]
-            rig.rotvec[i] = roma.rotmat_to_rotvec(prior[:3, :3].T @ true[:3, :3]).to(rig.rotvec)
-            rig.translation[i] = (true[:3, 3] - prior[:3, 3]).to(rig.translation)
-            rig.time_offset[i] = float(truth.time_offset[name] - float(rig.prior_time_offsets[i]))
-
-
 def floor_errors(rows: List[Dict[str, float]], average_last: int) -> Dict[str, Dict[str, float]]:
     """Per sensor, the mean of the last ``average_last`` logged errors (rows: step, sensor and the three errors)."""
     out: Dict[str, Dict[str, float]] = {}
@@ -121,7 +99,7 @@ def run_floor(cfg: FloorConfig) -> Dict[str, Dict[str, float]]:
     trainer.setup()
     pipeline = trainer.pipeline
     optimizer = pipeline.model.camera_optimizer
-    truth_corrections(optimizer)
+    optimizer.rig.set_corrections_to(optimizer.rig.data.ground_truth)  # the scene trains at the truth
     start = time.time()
     trainer.train()
     scene_wall = time.time() - start

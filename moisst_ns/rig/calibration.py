@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
 import numpy as np
+import roma
 import torch
 from jaxtyping import Float, Int
 from torch import Tensor, nn
@@ -152,6 +153,24 @@ class RigCalibration(nn.Module):
             self.rotvec.mul_(torch.clamp(max_rotation / norm, max=1.0))
         if max_time_offset > 0:
             self.time_offset.clamp_(-max_time_offset, max_time_offset)
+
+    @torch.no_grad()
+    def set_corrections_to(self, calibration: Calibration) -> None:
+        """Set every non-reference sensor's corrections so that the current calibration is ``calibration`` (eq. 12
+        inverted): ``R = R_prior Exp(w)`` gives ``w = Log(R_prior^T R)``, ``t = t_prior + v`` gives
+        ``v = t - t_prior``, and the offset correction is ``delta - delta_prior``.
+
+        Args:
+            calibration: extrinsics and time offsets of (at least) every non-reference sensor, same reference.
+        """
+        for i, name in enumerate(self.data.sensor_names):
+            if i == self.data.reference_index:
+                continue
+            target = torch.as_tensor(calibration.T_ref_sensor[name], dtype=torch.float64, device=self.prior_extrinsics.device)
+            prior = self.prior_extrinsics[i]
+            self.rotvec[i] = roma.rotmat_to_rotvec(prior[:3, :3].T @ target[:3, :3]).to(self.rotvec)
+            self.translation[i] = (target[:3, 3] - prior[:3, 3]).to(self.translation)
+            self.time_offset[i] = float(calibration.time_offset[name]) - float(self.prior_time_offsets[i])
 
     @torch.no_grad()
     def estimate(self) -> Calibration:
