@@ -47,6 +47,9 @@ class CalibrationOptimizerConfig(CameraOptimizerConfig):
     """Bound on the rotation correction's angle, degrees (<= 0: unbounded)."""
     max_time_offset: float = 0.3
     """Bound on the time-offset correction, seconds (<= 0: unbounded)."""
+    frozen_sensors: Tuple[str, ...] = ()
+    """Sensors held at their priors (e.g. LiDARs calibrated by the LiDAR-first stage, whose estimate the NeRF's
+    losses would only pull away from)."""
 
 
 class CalibrationOptimizer(CameraOptimizer):
@@ -71,6 +74,10 @@ class CalibrationOptimizer(CameraOptimizer):
         if rig is None:
             return
         self.rig = RigCalibration(rig)
+        for name in self.config.frozen_sensors:
+            if name not in rig.sensor_names:
+                raise ValueError(f"frozen_sensors: {name!r} is not a sensor of the rig {rig.sensor_names}")
+            self.rig.trainable[rig.sensor_names.index(name)] = False
         frame_sensor = torch.as_tensor(rig.extra["frame_sensor_index"], dtype=torch.long)
         if frame_sensor.shape[0] != num_cameras:
             raise ValueError(f"rig has {frame_sensor.shape[0]} camera frames, the dataset {num_cameras}")

@@ -81,6 +81,12 @@ class SynthConfig:
     """LiDAR firings per revolution (one revolution per frame period)."""
     lidar_max_points: int = 16384
     """Keep at most this many points per scan (a seeded random subset, kept in firing order)."""
+    lidar_scans: Literal["raw", "compensated"] = "raw"
+    """'raw': each point in the LiDAR frame at its own firing time, with per-point times (``.npz`` points + times);
+    'compensated': motion-compensated like KITTI-360's scans, every point in the LiDAR frame at the frame stamp and
+    no times (``.npz`` points only)."""
+    lidar_noise: float = 0.0
+    """Standard deviation of Gaussian range noise on every LiDAR point, metres (0: exact ranges)."""
     overwrite: bool = False
     """Replace the generator's outputs in a non-empty OUT (other files there are left alone)."""
 
@@ -225,7 +231,7 @@ def make_path(config: SynthConfig) -> VehiclePath:
 
 
 def _streams(seed: int) -> Dict[str, np.random.SeedSequence]:
-    names = ("path", "rig", "scene", "perturb", "lidar")
+    names = ("path", "rig", "scene", "perturb", "lidar", "lidar_noise")
     return dict(zip(names, np.random.SeedSequence(seed).spawn(len(names))))
 
 
@@ -806,6 +812,8 @@ def _check_config(config: SynthConfig) -> None:
         problems.append(f"--supersample must be >= 1, got {config.supersample}")
     if config.lidar_beams < 1 or config.lidar_azimuth_steps < 1 or config.lidar_max_points < 1:
         problems.append("--lidar-beams, --lidar-azimuth-steps and --lidar-max-points must be >= 1")
+    if not config.lidar_noise >= 0:
+        problems.append(f"--lidar-noise must be >= 0, got {config.lidar_noise}")
     if problems:
         raise SystemExit(f"moisst-synth: error: {'; '.join(problems)}")
 
@@ -837,6 +845,7 @@ def make_rig(config: SynthConfig) -> Path:
 
     intr = intrinsics(config)
     lidar_rng = np.random.default_rng(_streams(config.seed)["lidar"])
+    noise_rng = np.random.default_rng(_streams(config.seed)["lidar_noise"])
     frames = []
     for name, sensor in truth.items():
         stamps = frame_stamps(sensor, config.frames)
@@ -854,8 +863,17 @@ def make_rig(config: SynthConfig) -> Path:
             for k, stamp in enumerate(stamps):
                 poses = world_T(sensor, stamp + step_times)
                 points, times = render_lidar(scene, config, poses, lidar_rng)
+                if config.lidar_noise > 0:
+                    ranges = np.linalg.norm(points, axis=1, keepdims=True)
+                    points = (points * (1.0 + noise_rng.normal(0.0, config.lidar_noise, ranges.shape) / ranges)).astype(np.float32)
                 rel = f"{folder}/{k:06d}.npz"
-                write_npz(out / rel, points=points, times=times)
+                if config.lidar_scans == "compensated":
+                    step = np.rint(times / (PERIOD / config.lidar_azimuth_steps)).astype(np.int64)
+                    world = np.einsum("nij,nj->ni", poses[step, :3, :3], points) + poses[step, :3, 3]
+                    points = ((world - poses[0, :3, 3]) @ poses[0, :3, :3]).astype(np.float32)
+                    write_npz(out / rel, points=points)
+                else:
+                    write_npz(out / rel, points=points, times=times)
                 frames.append({"sensor": name, "timestamp": stamp, "file_path": rel})
     frames.sort(key=lambda f: (f["timestamp"], f["sensor"]))
 
@@ -867,6 +885,9 @@ def make_rig(config: SynthConfig) -> Path:
             entry.update(intr)
         sensors[name] = entry
     meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")}
+    for key, default in (("lidar_scans", "raw"), ("lidar_noise", 0.0)):  # recorded when used (older rigs stay byte-identical)
+        if meta[key] == default:
+            del meta[key]
     meta["generator"] = "moisst-synth"
     meta["note"] = "priors per --perturb; true values in ground_truth.json"
     rig = {"format": FORMAT, "reference_sensor": REFERENCE, "trajectory": "reference_poses.txt", "sensors": sensors,

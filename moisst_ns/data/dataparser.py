@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Type
+from typing import Literal, Optional, Type
 
 import numpy as np
 import torch
@@ -42,6 +42,21 @@ class MoisstRigDataParserConfig(DataParserConfig):
     """See ``eval_mode``."""
     load_ground_truth: bool = True
     """Read ``ground_truth.json`` beside rig.json when present, for error metrics only (never optimised)."""
+    prior_calibration: Optional[Path] = None
+    """A calibration.json whose sensors replace rig.json's priors (e.g. the LiDAR-first stage's estimate, so the
+    NeRF starts from it); rig.json itself is never modified."""
+
+
+def apply_prior_calibration(rig, calibration, file: Path) -> None:
+    """Replace the priors of ``rig`` (in memory) by those of ``calibration`` for every sensor it names."""
+    if calibration.reference_sensor != rig.reference_sensor:
+        raise RigFormatError(file, "reference_sensor", f"{calibration.reference_sensor!r} is not the rig's reference sensor {rig.reference_sensor!r}")
+    for name, pose in calibration.T_ref_sensor.items():
+        if name not in rig.sensors:
+            raise RigFormatError(file, f"sensors.{name}", f"not a sensor of the rig {sorted(rig.sensors)}")
+        if name != rig.reference_sensor:
+            rig.sensors[name].T_ref_sensor = np.asarray(pose, dtype=np.float64)
+            rig.sensors[name].time_offset = float(calibration.time_offset[name])
 
 
 @dataclass
@@ -56,6 +71,8 @@ class MoisstRigDataParser(DataParser):
     def rig_outputs(self, root: Path, split: str) -> DataparserOutputs:
         """Dataparser outputs of the ``moisst-rig/1`` dataset in ``root``."""
         rig = load_rig(root)
+        if self.config.prior_calibration is not None:
+            apply_prior_calibration(rig, load_calibration(self.config.prior_calibration), self.config.prior_calibration)
         gt_file = rig.root / "ground_truth.json"
         truth = load_calibration(gt_file) if self.config.load_ground_truth and gt_file.is_file() else None
         if truth is not None:

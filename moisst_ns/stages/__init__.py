@@ -1,0 +1,1 @@
+"""Calibration stages that run outside the NeRF (no nerfstudio import): LiDAR first, ..."""

@@ -1,0 +1,509 @@
+"""LiDAR first: calibrate each LiDAR against the reference trajectory from its own scans (no image, no NeRF).
+
+Every scan point ``p`` (LiDAR frame) fired at own-clock time ``t`` is placed in the world by paper eq. 1-2,
+``x = T_r(t + delta_L) @ ref_T_L @ p``, per point, so raw sweeps are de-skewed by the same interpolated trajectory
+(KITTI-360-style motion-compensated scans have no per-point times and are placed at their stamp). The scans of a
+static world agree with each other only at the true ``ref_T_L`` and ``delta_L``: a rotation error smears the map in
+proportion to the distance driven, a time error in proportion to speed changes, a lever-arm error in proportion to
+heading changes (map "crispness": Maddern et al. ICRA 2012, Sheehan et al. IJRR 2012, ethz-asl/lidar_align).
+
+Formulation (ICP-like, ``scan_consistency_residuals``): point-to-plane residuals ``n_b . (x_a - y_b)`` between
+sampled points of scan ``a`` and their nearest neighbours in scan ``b``, for scan pairs spread over baselines of
+0.5 m to ``max_baseline`` of driving; normals and planarity from each scan's own full-density neighbourhoods (open3d
+covariances). Outer iterations re-place every scan, recompute correspondences within a radius that shrinks
+coarse-to-fine and admit longer baselines as the estimate improves; each inner problem is a robust (Huber)
+Gauss-Newton/trust-region solve of the 7 parameters (``scipy.optimize.least_squares`` with the analytic Jacobian
+of ``placement_jacobian``). Unknowns: ``R = R_c Exp(w)`` (rotation about the LiDAR's own axes), ``t = t_c + v``
+(reference frame, metres), ``delta = delta_c + d`` (seconds), the same parameterisation as paper eq. 12.
+
+Nothing here imports nerfstudio.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import open3d as o3d
+import roma
+import torch
+from jaxtyping import Float, Int
+from scipy.optimize import least_squares
+
+from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
+from moisst_ns.stages.observability import Observability, analyse_observability
+
+
+class LidarFirstError(ValueError):
+    """The LiDAR-first stage cannot run on this input; the message is one line naming the file/sensor and field."""
+
+
+@dataclass
+class LidarFirstConfig:
+    """Settings of the LiDAR-first stage (defaults measured on the synthetic street and plaza drives)."""
+
+    points_per_scan: int = 3000
+    """Points sampled (after a ``voxel_size`` voxel grid) from each scan as correspondence sources."""
+    voxel_size: float = 0.2
+    """Voxel grid for the source samples, metres (spreads them evenly instead of crowding them near the sensor)."""
+    min_range: float = 2.0
+    """Points closer than this are dropped (returns from the vehicle itself move with it), metres."""
+    normal_radius: float = 1.0
+    """Neighbourhood radius of the normals and planarity, metres (within a scan, full density)."""
+    normal_max_nn: int = 30
+    """At most this many neighbours per normal."""
+    min_planarity: float = 0.3
+    """A target point is used only when its neighbourhood is planar: ``(l2 - l1) / l3 >=`` this (eigenvalues
+    ``l1 <= l2 <= l3`` of its covariance); edges, poles and ring-only neighbourhoods are dropped."""
+    normal_agreement: float = 0.9
+    """A correspondence is kept only when the source's and the target's normals agree: ``|n_a . n_b| >=`` this (a
+    ground point matched to the foot of a wall is not a point-to-plane pair)."""
+    plane_noise: float = 0.01
+    """Expected point noise, metres: each residual is weighted by ``plane_noise / sqrt(plane_noise^2 + s^2)``, ``s``
+    the target neighbourhood's thickness (RMS distance to its own plane), so curved or rough targets count less."""
+    min_baseline: float = 0.5
+    """Shortest driving distance between the two scans of a pair, metres (consecutive scans always pair)."""
+    max_baseline: float = 30.0
+    """Longest driving distance between the two scans of a pair, metres (their views must still overlap)."""
+    start_baseline: float = 4.0
+    """Coarse to fine: the first outer iteration pairs scans up to this far apart; it doubles every iteration."""
+    radius_start: float = 1.0
+    """Coarse to fine: correspondence radius of the first outer iteration, metres."""
+    radius_end: float = 0.15
+    """Correspondence radius reached at the end (x0.6 per outer iteration), metres."""
+    huber: float = 0.05
+    """Huber scale of the point-to-plane residuals, metres (residuals beyond it count linearly: moving objects)."""
+    max_outer: int = 20
+    """At most this many outer iterations (re-placement + correspondences + solve)."""
+    max_inner_evaluations: int = 30
+    """At most this many residual evaluations per inner solve."""
+    tolerance: Tuple[float, float, float] = (1e-4, 1e-5, 1e-5)
+    """Converged when an outer iteration moves the estimate less than (metres, radians, seconds) at the finest
+    radius and baseline."""
+    max_time_offset: float = 0.3
+    """Bound on the change of delta from its prior, seconds."""
+    max_extrapolation: float = 0.2
+    """Scans with points more than this far (seconds) outside the reference trajectory's time span are dropped
+    (placing them would extrapolate the trajectory's end segment too far); fewer than 3 left is an error."""
+    seed: int = 0
+    """Seed of the source-point sampling."""
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Placement (paper eq. 1-2 per point) and its Jacobian
+
+
+@dataclass
+class Trajectory:
+    """The reference trajectory with each segment's relative rotation precomputed (eq. 1, vectorised)."""
+
+    times: Float[np.ndarray, "num_poses"]
+    """Sample times, seconds since ``t0`` (strictly increasing)."""
+    rotations: Float[np.ndarray, "num_poses 3 3"]
+    """``world_R_ref``."""
+    translations: Float[np.ndarray, "num_poses 3"]
+    """``world_t_ref``, metres."""
+    segment_rotvecs: Float[np.ndarray, "num_segments 3"] = field(init=False)
+    """``Log(R_k^T R_{k+1})``, radians."""
+
+    def __post_init__(self):
+        rel = torch.from_numpy(np.einsum("kji,kjl->kil", self.rotations[:-1], self.rotations[1:]))
+        self.segment_rotvecs = roma.rotmat_to_rotvec(rel).numpy()
+
+    @classmethod
+    def from_rig(cls, rig: Rig) -> "Trajectory":
+        quats = torch.from_numpy(np.asarray(rig.trajectory_quats_xyzw, dtype=np.float64))
+        return cls(rig.trajectory_stamps - rig.trajectory_stamps[0], roma.unitquat_to_rotmat(roma.quat_normalize(quats)).numpy(),
+                   np.asarray(rig.trajectory_positions, dtype=np.float64))
+
+    def segments(self, t: Float[np.ndarray, "num"]) -> Tuple[Int[np.ndarray, "num"], Float[np.ndarray, "num"]]:
+        """Segment index (clamped to the end segments: extrapolation) and interpolation factor ``a`` of times ``t``."""
+        seg = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)
+        return seg, (t - self.times[seg]) / (self.times[seg + 1] - self.times[seg])
+
+    def pose_and_rates(self, t: Float[np.ndarray, "num"]):
+        """``world_R_ref(t)``, ``world_t_ref(t)`` (eq. 1), body angular rate (rad/s) and velocity (m/s) at ``t``."""
+        seg, alpha = self.segments(t)
+        step = self.segment_rotvecs[seg]
+        rot = self.rotations[seg] @ roma.rotvec_to_rotmat(torch.from_numpy(alpha[:, None] * step)).numpy()
+        dt = (self.times[seg + 1] - self.times[seg])[:, None]
+        delta_p = self.translations[seg + 1] - self.translations[seg]
+        return rot, self.translations[seg] + alpha[:, None] * delta_p, step / dt, delta_p / dt
+
+
+def right_jacobian(rotvec: Float[np.ndarray, "3"]) -> Float[np.ndarray, "3 3"]:
+    """Right Jacobian of SO(3)'s exponential: ``Exp(w + e) ~ Exp(w) Exp(J_r(w) e)``."""
+    theta = float(np.linalg.norm(rotvec))
+    k = np.array([[0.0, -rotvec[2], rotvec[1]], [rotvec[2], 0.0, -rotvec[0]], [-rotvec[1], rotvec[0], 0.0]])
+    if theta < 1e-6:
+        return np.eye(3) - 0.5 * k + k @ k / 6.0
+    return np.eye(3) - (1 - np.cos(theta)) / theta**2 * k + (theta - np.sin(theta)) / theta**3 * (k @ k)
+
+
+@dataclass
+class Extrinsic:
+    """A LiDAR's calibration: ``ref_T_L`` as rotation + translation (metres) and ``delta_L`` (seconds)."""
+
+    rotation: Float[np.ndarray, "3 3"]
+    translation: Float[np.ndarray, "3"]
+    time_offset: float
+
+    def updated(self, increment: Float[np.ndarray, "7"]) -> "Extrinsic":
+        """``R Exp(w)``, ``t + v``, ``delta + d`` for ``increment = (w, v, d)``."""
+        rot = self.rotation @ roma.rotvec_to_rotmat(torch.from_numpy(np.asarray(increment[:3], dtype=np.float64))).numpy()
+        return Extrinsic(rot, self.translation + increment[3:6], self.time_offset + float(increment[6]))
+
+    def matrix(self) -> Float[np.ndarray, "4 4"]:
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = self.rotation, self.translation
+        return pose
+
+
+def place_points(traj: Trajectory, ext: Extrinsic, points: Float[np.ndarray, "num 3"], times: Float[np.ndarray, "num"]) -> Float[np.ndarray, "num 3"]:
+    """Paper eq. 1-2 per point: ``x = T_r(t + delta) @ ref_T_L @ p``.
+
+    Args:
+        traj: the reference trajectory.
+        ext: the LiDAR's calibration.
+        points: points in the LiDAR frame, metres.
+        times: each point's own-clock firing time, seconds since the trajectory's ``t0``.
+
+    Returns:
+        World points, metres.
+    """
+    rot, trans, _, _ = traj.pose_and_rates(times + ext.time_offset)
+    ref = points @ ext.rotation.T + ext.translation
+    return np.einsum("nij,nj->ni", rot, ref) + trans
+
+
+def placement_jacobian(
+    traj: Trajectory, ext: Extrinsic, increment: Float[np.ndarray, "7"], points: Float[np.ndarray, "num 3"],
+    times: Float[np.ndarray, "num"], normals: Float[np.ndarray, "num 3"],
+) -> Tuple[Float[np.ndarray, "num"], Float[np.ndarray, "num 7"]]:
+    """``n . x`` and its derivative with respect to ``increment = (w, v, d)`` of ``ext.updated(increment)``.
+
+    With ``R_L = R_c Exp(w)``, ``q = R_L p + t_L``, ``x = R_r q + p_r`` at ``t + delta``:
+    ``dx/dv = R_r``, ``dx/dw = -R_r R_L [p]x J_r(w)``, ``dx/dd = R_r [omega]x q + velocity`` (omega the body rate of
+    the trajectory segment, eq. 1's SLERP).
+
+    Args:
+        traj, ext: trajectory and the calibration being linearised around.
+        increment: the current increment.
+        points, times: as in ``place_points``.
+        normals: the direction each point is projected on (world frame).
+
+    Returns:
+        (``n . x`` per point, metres; its Jacobian, metres per radian / metre / second).
+    """
+    cur = ext.updated(increment)
+    rot, trans, omega, vel = traj.pose_and_rates(times + cur.time_offset)
+    ref = points @ cur.rotation.T + cur.translation
+    x = np.einsum("nij,nj->ni", rot, ref) + trans
+    u = np.einsum("nji,nj->ni", rot, normals)  # R_r^T n
+    jac = np.empty((len(points), 7))
+    jac[:, :3] = np.cross(points, u @ cur.rotation) @ right_jacobian(np.asarray(increment[:3], dtype=np.float64))
+    jac[:, 3:6] = u
+    jac[:, 6] = np.einsum("ni,ni->n", u, np.cross(omega, ref)) + np.einsum("ni,ni->n", normals, vel)
+    return np.einsum("ni,ni->n", normals, x), jac
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Scans
+
+
+@dataclass
+class ScanSet:
+    """The scans of one LiDAR, concatenated (LiDAR frame), with their neighbourhood geometry."""
+
+    sensor: str
+    points: Float[np.ndarray, "num 3"]
+    """Points in the LiDAR frame, metres."""
+    times: Float[np.ndarray, "num"]
+    """Own-clock firing time of each point, seconds since the trajectory's ``t0`` (stamp + per-point offset)."""
+    offsets: Int[np.ndarray, "num_scans_plus_one"]
+    """Scan ``k`` holds points ``offsets[k]:offsets[k+1]``."""
+    stamps: Float[np.ndarray, "num_scans"]
+    """Frame stamps, seconds since ``t0``."""
+    normals: Float[np.ndarray, "num 3"]
+    """Unit normals in the LiDAR frame (from the scan's own neighbourhoods)."""
+    planar: np.ndarray
+    """(num,) bool: the neighbourhood is planar enough to be a point-to-plane target."""
+    thickness: Float[np.ndarray, "num"]
+    """RMS distance of each point's neighbourhood to its own best-fit plane, metres."""
+    sources: List[Int[np.ndarray, "samples"]]
+    """Per scan, the global indices of its sampled source points."""
+    files: List[str]
+    deskewed: bool
+    """Whether the scans carry per-point times (raw sweeps, de-skewed here)."""
+    dropped: List[str] = field(default_factory=list)
+    """Scans left out, with the reason."""
+
+    def scan(self, k: int) -> slice:
+        return slice(int(self.offsets[k]), int(self.offsets[k + 1]))
+
+
+def _neighbourhood_geometry(points: np.ndarray, config: LidarFirstConfig) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals, planarity test and thickness of every point's neighbourhood (open3d covariances)."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=config.normal_radius, max_nn=config.normal_max_nn))
+    evals, evecs = np.linalg.eigh(np.asarray(cloud.covariances))
+    planarity = (evals[:, 1] - evals[:, 0]) / np.maximum(evals[:, 2], 1e-12)
+    return evecs[:, :, 0], planarity >= config.min_planarity, np.sqrt(np.maximum(evals[:, 0], 0.0))
+
+
+def load_scans(rig: Rig, sensor: str, traj: Trajectory, config: LidarFirstConfig, log: Callable[[str], None] = print) -> ScanSet:
+    """Read, filter and analyse every scan of ``sensor``; one-line ``LidarFirstError`` for unusable input."""
+    frames = sorted(rig.frames_of(sensor), key=lambda f: f.timestamp)
+    t0, prior = float(rig.trajectory_stamps[0]), rig.sensors[sensor].time_offset
+    start, end = traj.times[0] - config.max_extrapolation, traj.times[-1] + config.max_extrapolation
+    rng = np.random.default_rng(config.seed)
+    pts, tms, offsets, stamps, normals, planar, thickness, sources, files, dropped = [], [], [0], [], [], [], [], [], [], []
+    deskewed = False
+    for frame in frames:
+        path = rig.root / frame.file_path
+        try:
+            points, offsets_s, _ = load_lidar_scan(path, min_range=config.min_range)
+        except RigFormatError as err:
+            raise LidarFirstError(str(err)) from None
+        stamp = frame.timestamp - t0
+        times = stamp + (offsets_s if offsets_s is not None else np.zeros(len(points)))
+        deskewed |= offsets_s is not None
+        if times.min() + prior < start or times.max() + prior > end:
+            dropped.append(f"{frame.file_path}: outside the reference trajectory's time span by more than {config.max_extrapolation} s")
+            continue
+        if len(points) < 100:
+            dropped.append(f"{frame.file_path}: only {len(points)} points beyond {config.min_range} m")
+            continue
+        points = points.astype(np.float64)
+        n, ok, thick = _neighbourhood_geometry(points, config)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        _, _, traced = cloud.voxel_down_sample_and_trace(config.voxel_size, cloud.get_min_bound() - 1, cloud.get_max_bound() + 1)
+        reps = np.array([v[0] for v in traced], dtype=np.int64)
+        reps = reps[ok[reps]]
+        if len(reps) > config.points_per_scan:
+            reps = np.sort(rng.choice(reps, config.points_per_scan, replace=False))
+        sources.append(reps + offsets[-1])
+        pts.append(points), tms.append(times), normals.append(n), planar.append(ok), thickness.append(thick)
+        offsets.append(offsets[-1] + len(points)), stamps.append(stamp), files.append(frame.file_path)
+    where = f"{rig.root / 'rig.json'}: sensors.{sensor}"
+    if len(pts) < 3:
+        reasons = f" ({'; '.join(dropped[:2])})" if dropped else ""
+        raise LidarFirstError(f"{where}: needs at least 3 usable scans, got {len(pts)} of {len(frames)}{reasons}")
+    for note in dropped:
+        log(f"[lidar-first] {sensor}: dropped {note}")
+    return ScanSet(sensor, np.concatenate(pts), np.concatenate(tms), np.asarray(offsets), np.asarray(stamps),
+                   np.concatenate(normals), np.concatenate(planar), np.concatenate(thickness), sources, files, deskewed, dropped)
+
+
+def scan_pairs(traj: Trajectory, scans: ScanSet, prior_offset: float, config: LidarFirstConfig) -> Tuple[np.ndarray, np.ndarray]:
+    """Scan pairs ``(a, b)``, ``a < b``, at driving distances of 0.5, 1, 2, 4... m up to ``max_baseline``, and
+    each pair's baseline (metres of the reference trajectory between the two scans' stamps)."""
+    _, pos, _, _ = traj.pose_and_rates(scans.stamps + prior_offset)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    targets = []
+    b = config.min_baseline
+    while b <= config.max_baseline:
+        targets.append(b)
+        b *= 2
+    pairs = set()
+    num = len(scans.stamps)
+    for a in range(num):
+        for gap in (1, 2):
+            if a + gap < num:
+                pairs.add((a, a + gap))
+        for dist in targets:
+            b = int(np.searchsorted(arc, arc[a] + dist))
+            if b < num and arc[b] - arc[a] <= config.max_baseline:
+                pairs.add((a, b))
+    pairs_arr = np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2)
+    return pairs_arr, arc[pairs_arr[:, 1]] - arc[pairs_arr[:, 0]]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Correspondences and the solve
+
+
+@dataclass
+class Correspondences:
+    """Point-to-plane pairs of one outer iteration: source point ``src`` should lie on the plane of ``tgt``."""
+
+    src: Int[np.ndarray, "num"]
+    tgt: Int[np.ndarray, "num"]
+    normals: Float[np.ndarray, "num 3"]
+    """World-frame normal at each target (fixed during the inner solve)."""
+    weights: Float[np.ndarray, "num"]
+    """Per-residual weight (target thickness against the expected point noise)."""
+    candidates: int
+    """Source points queried (before the radius and planarity tests)."""
+
+
+def find_correspondences(traj: Trajectory, ext: Extrinsic, scans: ScanSet, pairs: np.ndarray, radius: float,
+                         config: LidarFirstConfig) -> Correspondences:
+    """Nearest neighbours (open3d) of each pair's source samples in its target scan, all placed with ``ext``, kept
+    within ``radius``, on planar targets and with agreeing normals."""
+    world = place_points(traj, ext, scans.points, scans.times)
+    src_all, tgt_all, candidates = [], [], 0
+    for b in np.unique(pairs[:, 1]):
+        sources = np.concatenate([scans.sources[a] for a in pairs[pairs[:, 1] == b, 0]])
+        if len(sources) == 0:
+            continue
+        candidates += len(sources)
+        part = scans.scan(int(b))
+        index = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(world[part]))
+        index.knn_index()
+        found, dist2 = index.knn_search(o3d.core.Tensor(world[sources]), 1)
+        tgt = found.numpy()[:, 0].astype(np.int64) + part.start
+        keep = (dist2.numpy()[:, 0] < radius * radius) & scans.planar[tgt]
+        src_all.append(sources[keep]), tgt_all.append(tgt[keep])
+    src, tgt = np.concatenate(src_all), np.concatenate(tgt_all)
+    rot_b, _, _, _ = traj.pose_and_rates(scans.times[tgt] + ext.time_offset)
+    rot_a, _, _, _ = traj.pose_and_rates(scans.times[src] + ext.time_offset)
+    normals = np.einsum("nij,nj->ni", rot_b, scans.normals[tgt] @ ext.rotation.T)
+    agree = np.abs(np.einsum("ni,ni->n", normals, np.einsum("nij,nj->ni", rot_a, scans.normals[src] @ ext.rotation.T)))
+    keep = agree >= config.normal_agreement
+    weights = config.plane_noise / np.sqrt(config.plane_noise**2 + scans.thickness[tgt[keep]] ** 2)
+    return Correspondences(src[keep], tgt[keep], normals[keep], weights, candidates)
+
+
+def consistency_residuals(
+    traj: Trajectory, ext: Extrinsic, scans: ScanSet, corr: Correspondences, increment: np.ndarray
+) -> Tuple[Float[np.ndarray, "num"], Float[np.ndarray, "num 7"]]:
+    """Weighted point-to-plane residuals ``w n . (x_src - y_tgt)`` (metres) at ``ext.updated(increment)`` and their
+    Jacobian."""
+    ra, ja = placement_jacobian(traj, ext, increment, scans.points[corr.src], scans.times[corr.src], corr.normals)
+    rb, jb = placement_jacobian(traj, ext, increment, scans.points[corr.tgt], scans.times[corr.tgt], corr.normals)
+    return corr.weights * (ra - rb), corr.weights[:, None] * (ja - jb)
+
+
+def huber_weights(residuals: np.ndarray, scale: float) -> np.ndarray:
+    """IRLS weights of the Huber loss (1 inside ``scale``, ``scale / |r|`` beyond)."""
+    return np.minimum(1.0, scale / np.maximum(np.abs(residuals), 1e-12))
+
+
+@dataclass
+class LidarResult:
+    """The LiDAR-first estimate of one LiDAR."""
+
+    sensor: str
+    prior: Extrinsic
+    estimate: Extrinsic
+    history: List[Dict[str, float]]
+    """Per outer iteration: radius, baseline, pairs, correspondences, robust cost, inlier RMS, change, wall."""
+    observability: Observability
+    num_scans: int
+    deskewed: bool
+    dropped: List[str]
+    wall_s: float
+
+
+def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callable[[str], None] = print) -> LidarResult:
+    """Estimate ``ref_T_L`` and ``delta_L`` of one LiDAR from its scans and the reference trajectory alone.
+
+    Args:
+        rig: the loaded dataset (its priors are the starting point).
+        sensor: the LiDAR's name.
+        config: stage settings.
+        log: where progress lines go.
+
+    Returns:
+        The estimate, its per-iteration history and the observability of each parameter.
+    """
+    start = time.perf_counter()
+    spec = rig.sensors[sensor]
+    traj = Trajectory.from_rig(rig)
+    scans = load_scans(rig, sensor, traj, config, log)
+    prior = Extrinsic(spec.T_ref_sensor[:3, :3].copy(), spec.T_ref_sensor[:3, 3].copy(), float(spec.time_offset))
+    pairs, baselines = scan_pairs(traj, scans, prior.time_offset, config)
+    ext, history = prior, []
+    longest = float(baselines.max()) if len(baselines) else 0.0
+    corr = None
+    for outer in range(config.max_outer):
+        radius = max(config.radius_end, config.radius_start * 0.6**outer)
+        reach = config.start_baseline * 2.0**outer
+        active = pairs[baselines <= reach]
+        corr = find_correspondences(traj, ext, scans, active, radius, config)
+        if outer == 0 and len(corr.src) < max(100, 0.02 * corr.candidates):
+            raise LidarFirstError(
+                f"{rig.root / 'rig.json'}: sensors.{sensor}: the scans do not overlap: {len(corr.src)} of {corr.candidates} "
+                f"sampled points found a planar neighbour within {radius:.2f} m in the paired scans (wrong trajectory, "
+                "time stamps or a static LiDAR?)")
+        spent = ext.time_offset - prior.time_offset
+        lower = np.full(7, -np.inf)
+        upper = np.full(7, np.inf)
+        lower[6], upper[6] = -config.max_time_offset - spent, config.max_time_offset - spent
+        cache: Dict[bytes, Tuple[np.ndarray, np.ndarray]] = {}
+
+        def evaluate(inc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+            key = inc.tobytes()
+            if key not in cache:
+                cache.clear()
+                cache[key] = consistency_residuals(traj, ext, scans, corr, inc)
+            return cache[key]
+
+        solution = least_squares(lambda x: evaluate(x)[0], np.zeros(7), jac=lambda x: evaluate(x)[1], bounds=(lower, upper),
+                                 loss="huber", f_scale=config.huber, x_scale="jac", method="trf",
+                                 max_nfev=config.max_inner_evaluations)
+        inc = solution.x
+        ext = ext.updated(inc)
+        residuals = solution.fun
+        inliers = np.abs(residuals) < config.huber
+        change = (float(np.linalg.norm(inc[3:6])), float(np.linalg.norm(inc[:3])), abs(float(inc[6])))
+        history.append({
+            "iteration": outer, "radius_m": radius, "max_baseline_m": min(reach, longest), "pairs": int(len(active)),
+            "correspondences": int(len(corr.src)), "cost": float(solution.cost / max(len(residuals), 1)),
+            "inlier_rms_m": float(np.sqrt(np.mean(residuals[inliers] ** 2))) if inliers.any() else float("nan"),
+            "inlier_fraction": float(inliers.mean()), "change_m": change[0], "change_rad": change[1], "change_s": change[2],
+            "elapsed_s": time.perf_counter() - start,
+        })
+        h = history[-1]
+        log(f"[lidar-first] {sensor} it {outer}: radius {radius:.2f} m, pairs {h['pairs']}, {h['correspondences']} corr., "
+            f"inlier rms {1000 * h['inlier_rms_m']:.1f} mm, step {100 * change[0]:.2f} cm / {np.rad2deg(change[1]):.3f} deg / "
+            f"{1000 * change[2]:.2f} ms")
+        finest = radius <= config.radius_end and reach >= longest
+        if finest and all(c < tol for c, tol in zip(change, config.tolerance)):
+            break
+    assert corr is not None
+    corr = find_correspondences(traj, ext, scans, pairs, config.radius_end, config)
+    residuals, jac = consistency_residuals(traj, ext, scans, corr, np.zeros(7))
+    observability = analyse_observability(jac, residuals, huber_weights(residuals, config.huber), traj, scans.stamps + ext.time_offset, ext.rotation)
+    return LidarResult(sensor, prior, ext, history, observability, len(scans.stamps), scans.deskewed, scans.dropped,
+                       time.perf_counter() - start)
+
+
+@dataclass
+class LidarFirstResult:
+    """Every LiDAR's estimate, and the full calibration (LiDARs estimated, every other sensor at its prior)."""
+
+    calibration: Calibration
+    lidars: Dict[str, LidarResult]
+
+
+def lidar_sensors(rig: Rig) -> List[str]:
+    """The rig's non-reference LiDARs (the ones this stage calibrates)."""
+    return [n for n, s in rig.sensors.items() if s.type == "lidar" and n != rig.reference_sensor]
+
+
+def calibrate_lidars(rig: Rig, config: LidarFirstConfig, sensors: Optional[Sequence[str]] = None,
+                     log: Callable[[str], None] = print) -> LidarFirstResult:
+    """Run the stage on ``sensors`` (default: every non-reference LiDAR of the rig).
+
+    Raises:
+        LidarFirstError: a named sensor is not a non-reference LiDAR, or its scans cannot be used.
+    """
+    available = lidar_sensors(rig)
+    names = list(sensors) if sensors else available
+    for name in names:
+        if name not in available:
+            raise LidarFirstError(f"{rig.root / 'rig.json'}: sensors.{name}: not a non-reference LiDAR of this rig (LiDARs: {available or 'none'})")
+    if not names:
+        raise LidarFirstError(f"{rig.root / 'rig.json'}: sensors: the rig has no LiDAR other than the reference sensor")
+    calibration = Calibration.from_rig(rig)
+    calibration.T_ref_sensor, calibration.time_offset = dict(calibration.T_ref_sensor), dict(calibration.time_offset)
+    results = {}
+    for name in names:
+        results[name] = calibrate_lidar(rig, name, config, log)
+        calibration.T_ref_sensor[name] = results[name].estimate.matrix()
+        calibration.time_offset[name] = results[name].estimate.time_offset
+    return LidarFirstResult(calibration, results)

@@ -1,0 +1,114 @@
+"""What the LiDAR-first stage leaves in a run folder: ``calibration.json``, ``lidar_first.json``, ``lidar_first.md``
+and a convergence plot. No nerfstudio import."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from moisst_ns.rig.calibration import calibration_report_errors
+from moisst_ns.rig.format import Calibration
+from moisst_ns.stages.lidar_first import LidarFirstConfig, LidarFirstResult, LidarResult
+from moisst_ns.stages.observability import MIN_EFFECT
+
+REPORT_JSON = "lidar_first.json"
+REPORT_MD = "lidar_first.md"
+PLOT = "lidar_first_convergence.png"
+
+
+def _change(result: LidarResult) -> Dict[str, float]:
+    """The estimate's change from the prior: lever arm (cm, reference frame), rotation (deg), time (ms)."""
+    import roma
+    import torch
+
+    rel = torch.from_numpy(result.prior.rotation.T @ result.estimate.rotation)
+    return {"translation_cm": float(100 * np.linalg.norm(result.estimate.translation - result.prior.translation)),
+            "rotation_deg": float(np.rad2deg(roma.rotmat_to_rotvec(rel).norm())),
+            "time_ms": 1000 * (result.estimate.time_offset - result.prior.time_offset)}
+
+
+def stage_summary(result: LidarFirstResult, config: LidarFirstConfig, prior: Calibration, truth: Optional[Calibration]) -> dict:
+    """The JSON-ready record of a stage run (what ``lidar_first.json`` holds)."""
+    sensors = {}
+    before = calibration_report_errors(prior, truth) if truth else {}
+    after = calibration_report_errors(result.calibration, truth) if truth else {}
+    for name, r in result.lidars.items():
+        entry = {
+            "T_ref_sensor": r.estimate.matrix().tolist(), "time_offset": r.estimate.time_offset,
+            "prior_T_ref_sensor": r.prior.matrix().tolist(), "prior_time_offset": r.prior.time_offset,
+            "change_from_prior": _change(r), "scans": r.num_scans, "deskewed": r.deskewed, "dropped_scans": r.dropped,
+            "wall_s": r.wall_s, "history": r.history,
+            "observability": [asdict(d) for d in r.observability.dofs], "weak": r.observability.weak,
+        }
+        if truth:
+            entry["errors_before"], entry["errors_after"] = before[name], after[name]
+        sensors[name] = entry
+    return {"stage": "lidar-first", "config": asdict(config), "min_effect_m": MIN_EFFECT, "sensors": sensors}
+
+
+def observability_lines(result: LidarResult) -> List[str]:
+    """One line per parameter: the RMS effect of a typical error, the formal sigma and the verdict."""
+    units = {"x": (100, "cm"), "y": (100, "cm"), "z": (100, "cm"), "time_offset": (1000, "ms")}
+    lines = []
+    for d in result.observability.dofs:
+        scale, unit = units.get(d.name, (np.rad2deg(1.0), "deg"))
+        verdict = f"WEAK: {d.reason}" if d.weak else "constrained"
+        lines.append(f"  {d.name:<12} effect {1000 * d.effect_m:7.2f} mm   sigma {scale * d.sigma:9.4f} {unit:<3}  {verdict}")
+    return lines
+
+
+def write_stage_outputs(result: LidarFirstResult, config: LidarFirstConfig, prior: Calibration, truth: Optional[Calibration],
+                        out: Path) -> dict:
+    """Write ``calibration.json``, ``lidar_first.json``, ``lidar_first.md`` and the convergence plot into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    result.calibration.write(out / "calibration.json")
+    summary = stage_summary(result, config, prior, truth)
+    (out / REPORT_JSON).write_text(json.dumps(summary, indent=1) + "\n")
+    md = ["# LiDAR-first stage", "",
+          "Each LiDAR calibrated against the reference trajectory from its own scans (point-to-plane scan consistency).",
+          f"A parameter is weak when a typical prior error (10 cm, 1 deg, 10 ms) changes the residuals by < {1000 * MIN_EFFECT:.0f} mm RMS.", ""]
+    for name, r in result.lidars.items():
+        s = summary["sensors"][name]
+        c = s["change_from_prior"]
+        md += [f"## {name}", "", f"{r.num_scans} scans ({'raw sweeps, de-skewed' if r.deskewed else 'no per-point times'}), "
+               f"{len(r.history)} outer iterations, {r.wall_s:.1f} s. Change from the prior: {c['translation_cm']:.2f} cm, "
+               f"{c['rotation_deg']:.3f} deg, {c['time_ms']:+.2f} ms.", ""]
+        if truth:
+            b, a = s["errors_before"], s["errors_after"]
+            md += ["| | translation (cm) | rotation (deg) | time (ms) |", "|---|---|---|---|",
+                   f"| prior | {b['translation_cm']:.2f} | {b['rotation_deg']:.3f} | {b['time_ms']:.2f} |",
+                   f"| estimate | {a['translation_cm']:.2f} | {a['rotation_deg']:.4f} | {a['time_ms']:.3f} |", ""]
+        md += ["```", *observability_lines(r), "```", ""]
+        md += ["| iteration | radius (m) | pairs | correspondences | inlier RMS (mm) | step (cm / deg / ms) |", "|---|---|---|---|---|---|"]
+        md += [f"| {h['iteration']} | {h['radius_m']:.2f} | {h['pairs']} | {h['correspondences']} | {1000 * h['inlier_rms_m']:.2f} | "
+               f"{100 * h['change_m']:.3f} / {np.rad2deg(h['change_rad']):.4f} / {1000 * h['change_s']:.3f} |" for h in r.history]
+        md += [""]
+    md += [f"![convergence]({PLOT})", ""]
+    (out / REPORT_MD).write_text("\n".join(md))
+    _plot(result, out / PLOT)
+    return summary
+
+
+def _plot(result: LidarFirstResult, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    for name, r in result.lidars.items():
+        it = [h["iteration"] for h in r.history]
+        ax[0].semilogy(it, [1000 * h["inlier_rms_m"] for h in r.history], "o-", label=name)
+        ax[1].semilogy(it, [max(100 * h["change_m"], 1e-4) for h in r.history], "o-", label=f"{name} (cm)")
+    ax[0].set(xlabel="outer iteration", ylabel="inlier RMS (mm)", title="point-to-plane residuals")
+    ax[1].set(xlabel="outer iteration", ylabel="lever-arm step (cm)", title="update per iteration")
+    for a in ax:
+        a.grid(True, alpha=0.3)
+        a.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

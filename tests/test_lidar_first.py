@@ -1,0 +1,299 @@
+"""The LiDAR-first stage: placement and Jacobian against the rig math, closed-form residuals, observability flags,
+de-skew of raw sweeps, bad input, and end-to-end runs on tiny synthetic rigs."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import roma
+import torch
+
+from moisst_ns.cli.lidar_calibrate import LidarCalibrateConfig, run_lidar_calibration
+from moisst_ns.rig.calibration import calibration_report_errors
+from moisst_ns.rig.format import load_calibration, load_lidar_scan, load_rig
+from moisst_ns.rig.geometry import calibrated_extrinsic, interpolate_trajectory, make_pose
+from moisst_ns.stages.lidar_first import (
+    Correspondences,
+    Extrinsic,
+    LidarFirstConfig,
+    LidarFirstError,
+    ScanSet,
+    Trajectory,
+    calibrate_lidars,
+    consistency_residuals,
+    place_points,
+    placement_jacobian,
+)
+from moisst_ns.stages.observability import PARAMETERS, analyse_observability
+from moisst_ns.synth import SynthConfig, build_scene, make_rig
+from helpers import tree_hash
+
+
+def rotz(deg: float) -> np.ndarray:
+    return roma.rotvec_to_rotmat(torch.tensor([0.0, 0.0, np.deg2rad(deg)], dtype=torch.float64)).numpy()
+
+
+def random_trajectory(rng: np.random.Generator, num: int = 12) -> Trajectory:
+    rotvecs = np.cumsum(rng.normal(0, 0.05, (num, 3)), axis=0)
+    rot = roma.rotvec_to_rotmat(torch.from_numpy(rotvecs)).numpy()
+    return Trajectory(np.cumsum(rng.uniform(0.05, 0.15, num)), rot, np.cumsum(rng.normal(0, 1.0, (num, 3)), axis=0))
+
+
+def test_placement_is_paper_eq_1_2():
+    """``place_points`` equals the rig geometry's eq. 1 (``interpolate_trajectory``, extrapolation included) and eq. 2."""
+    rng = np.random.default_rng(0)
+    traj = random_trajectory(rng)
+    ext = Extrinsic(rotz(30.0), np.array([0.5, -0.2, 1.0]), 0.04)
+    points = rng.normal(0, 10, (200, 3))
+    times = rng.uniform(traj.times[0] - 0.3, traj.times[-1] + 0.3, 200)
+    world_T_ref = interpolate_trajectory(torch.from_numpy(traj.times), torch.from_numpy(traj.rotations),
+                                         torch.from_numpy(traj.translations), torch.from_numpy(times + ext.time_offset))
+    expected = (world_T_ref @ torch.from_numpy(ext.matrix()))[:, :3, :3] @ torch.from_numpy(points)[..., None]
+    expected = expected[..., 0] + (world_T_ref @ torch.from_numpy(ext.matrix()))[:, :3, 3]
+    assert np.abs(place_points(traj, ext, points, times) - expected.numpy()).max() < 1e-9
+
+
+def test_jacobian_matches_autograd_through_eq_12():
+    """The analytic Jacobian of ``n . x`` equals torch autograd through eq. 1 and eq. 12 (``calibrated_extrinsic``),
+    at a non-zero increment (so the right Jacobian of Exp matters)."""
+    rng = np.random.default_rng(1)
+    traj = random_trajectory(rng)
+    ext = Extrinsic(rotz(-20.0), np.array([1.0, 0.3, -0.5]), -0.03)
+    points, normals = rng.normal(0, 8, (50, 3)), rng.normal(0, 1, (50, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    times = rng.uniform(traj.times[1], traj.times[-2], 50)
+    increment = np.array([0.3, -0.2, 0.25, 0.1, -0.2, 0.05, 0.012])
+    value, jac = placement_jacobian(traj, ext, increment, points, times, normals)
+
+    inc = torch.tensor(increment, requires_grad=True)
+    pose = calibrated_extrinsic(torch.from_numpy(ext.matrix()), inc[:3], inc[3:6])
+    world_T_ref = interpolate_trajectory(torch.from_numpy(traj.times), torch.from_numpy(traj.rotations),
+                                         torch.from_numpy(traj.translations), torch.from_numpy(times) + ext.time_offset + inc[6])
+    world = (world_T_ref @ pose)[:, :3, :3] @ torch.from_numpy(points)[..., None]
+    world = world[..., 0] + (world_T_ref @ pose)[:, :3, 3]
+    projected = (world * torch.from_numpy(normals)).sum(-1)
+    expected = torch.stack([torch.autograd.grad(projected[i], inc, retain_graph=True)[0] for i in range(len(points))])
+    assert np.abs(value - projected.detach().numpy()).max() < 1e-9
+    assert np.abs(jac - expected.numpy()).max() < 1e-6 * max(1.0, np.abs(expected.numpy()).max())
+
+
+def corner_world(rng: np.random.Generator, num: int = 300):
+    """Points on three planes (ground z=0, walls x=6 and y=-5) and their normals."""
+    ground = np.c_[rng.uniform(-4, 5, num), rng.uniform(-4, 4, num), np.zeros(num)]
+    wall_x = np.c_[np.full(num, 6.0), rng.uniform(-4, 4, num), rng.uniform(0, 3, num)]
+    wall_y = np.c_[rng.uniform(-4, 5, num), np.full(num, -5.0), rng.uniform(0, 3, num)]
+    normals = np.repeat(np.eye(3)[[2, 0, 1]], num, axis=0)
+    return np.concatenate([ground, wall_x, wall_y]), normals
+
+
+def two_scan_problem(lever_error: np.ndarray):
+    """Two scans of the corner, 0.5 s apart, the vehicle turning 30 deg about z and moving 2 m; the LiDAR's true
+    extrinsic is known, its estimate off by ``lever_error``. Correspondences: every world point with itself."""
+    rng = np.random.default_rng(2)
+    world, normals = corner_world(rng)
+    traj = Trajectory(np.array([0.0, 0.5, 1.0]), np.stack([rotz(0.0), rotz(30.0), rotz(60.0)]),
+                      np.array([[0.0, 0.0, 0.0], [2.0, 0.5, 0.0], [4.0, 1.5, 0.0]]))
+    truth = Extrinsic(rotz(90.0), np.array([0.5, 0.0, 1.8]), 0.0)
+    poses = [traj.pose_and_rates(np.array([t]))[:2] for t in (0.0, 0.5)]
+    # LiDAR-frame points of the same world points seen from each scan: p = R_L^T (R_r^T (x - p_r) - t_L)
+    local = [((world - pos[0]) @ rot[0]) @ truth.rotation - truth.translation @ truth.rotation for rot, pos in poses]
+    num = len(world)
+    scans = ScanSet("lidar", np.concatenate(local), np.r_[np.zeros(num), np.full(num, 0.5)], np.array([0, num, 2 * num]),
+                    np.array([0.0, 0.5]), np.zeros((2 * num, 3)), np.ones(2 * num, bool), np.zeros(2 * num), [np.arange(num), np.arange(num, 2 * num)],
+                    ["a", "b"], True)
+    corr = Correspondences(np.arange(num), np.arange(num, 2 * num), normals, np.ones(num), num)
+    wrong = Extrinsic(truth.rotation, truth.translation + lever_error, 0.0)
+    return traj, truth, wrong, scans, corr, normals, poses
+
+
+def test_two_scans_of_a_corner_closed_form():
+    """Point-to-plane residuals are 0 at the truth and ``n . (R_a - R_b) d`` for a lever-arm error ``d``."""
+    d = np.array([0.3, -0.2, 0.4])
+    traj, truth, wrong, scans, corr, normals, poses = two_scan_problem(d)
+    at_truth, _ = consistency_residuals(traj, truth, scans, corr, np.zeros(7))
+    assert np.abs(at_truth).max() < 1e-9
+    residuals, _ = consistency_residuals(traj, wrong, scans, corr, np.zeros(7))
+    expected = normals @ ((poses[0][0][0] - poses[1][0][0]) @ d)
+    assert np.abs(residuals - expected).max() < 1e-9
+    # the vertical part of d never shows (both poses rotate about z only): closed form says n . (R_a - R_b) e_z = 0
+    vertical, _ = consistency_residuals(traj, Extrinsic(truth.rotation, truth.translation + [0, 0, 0.5], 0.0), scans, corr, np.zeros(7))
+    assert np.abs(vertical).max() < 1e-9
+
+
+def observability_of(traj: Trajectory, times: np.ndarray, ext: Extrinsic, seed: int = 3):
+    """Observability on a box-shaped world of many plane orientations, scans at ``times``, every pair within 2 s."""
+    rng = np.random.default_rng(seed)
+    jacs = []
+    for i, ta in enumerate(times):
+        for tb in times[i + 1:]:
+            if tb - ta > 2.0:
+                continue
+            x = rng.uniform(-15, 15, (60, 3)) + traj.pose_and_rates(np.array([ta]))[1]
+            n = rng.normal(0, 1, (60, 3))
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            local = []
+            for t in (ta, tb):
+                rot, pos, _, _ = traj.pose_and_rates(np.full(60, t))
+                ref = np.einsum("nji,nj->ni", rot, x - pos)
+                local.append((ref - ext.translation) @ ext.rotation)
+            _, ja = placement_jacobian(traj, ext, np.zeros(7), local[0], np.full(60, ta), n)
+            _, jb = placement_jacobian(traj, ext, np.zeros(7), local[1], np.full(60, tb), n)
+            jacs.append(ja - jb)
+    jac = np.concatenate(jacs)
+    obs = analyse_observability(jac, np.full(len(jac), 0.005), np.ones(len(jac)), traj, times, ext.rotation)
+    return obs
+
+
+def drive(heading, speed, pitch_roll_deg=0.0, duration=6.0):
+    t = np.linspace(0, duration, 121)
+    psi, v = heading(t), speed(t)
+    xy = np.c_[np.cumsum(v * np.cos(psi)), np.cumsum(v * np.sin(psi))] * (t[1] - t[0])
+    tilt = np.deg2rad(pitch_roll_deg) * np.sin(2 * np.pi * t / 2.0)
+    rotvecs = np.c_[tilt, np.deg2rad(pitch_roll_deg) * np.cos(2 * np.pi * t / 3.0), psi]
+    rot = roma.rotvec_to_rotmat(torch.from_numpy(rotvecs)).numpy()
+    return Trajectory(t, rot, np.c_[xy, np.zeros(len(t))])
+
+
+EXT = Extrinsic(rotz(10.0), np.array([1.2, 0.1, 1.9]), 0.02)
+TIMES = np.arange(0.1, 5.9, 0.2)
+
+
+def test_observability_straight_constant_speed_drive():
+    """No rotation and no speed change: the lever arm and the time offset are flagged, and so is the rotation about
+    the direction of travel (the LiDAR is yawed 10 deg, so that axis mixes its roll and pitch); yaw is not."""
+    obs = observability_of(drive(lambda t: 0 * t, lambda t: 8 + 0 * t), TIMES, EXT)
+    assert obs.weak == ["x", "y", "z", "roll", "pitch", "time_offset"]
+    assert "velocity changes by only 0.00 m/s" in obs.dofs[PARAMETERS.index("time_offset")].reason
+    assert "along the sensor's (0.98, -0.17, 0.00) direction and turns only 0.0 deg" in obs.dofs[PARAMETERS.index("roll")].reason
+
+
+def test_observability_flat_drive():
+    """Turns and speed changes on a flat road: only the vertical lever arm (z, world up here) is flagged."""
+    obs = observability_of(drive(lambda t: 0.8 * np.sin(t / 2), lambda t: 6 + 2 * np.sin(t)), TIMES, EXT)
+    assert obs.weak == ["z"]
+    assert "turns only 0.0 deg about its axes other than z" in obs.dofs[2].reason
+    # pitching and rolling by a few degrees makes the vertical observable too
+    assert observability_of(drive(lambda t: 0.8 * np.sin(t / 2), lambda t: 6 + 2 * np.sin(t), pitch_roll_deg=4.0), TIMES, EXT).weak == []
+
+
+TINY = dict(width=48, height=36, frames=20, lidar_azimuth_steps=512, lidar_max_points=6000)
+
+
+@pytest.fixture(scope="module")
+def tiny_rigs(tmp_path_factory):
+    base = tmp_path_factory.mktemp("lidar_first")
+    return {
+        "raw": make_rig(SynthConfig(out=base / "raw", seed=3, perturb="paper", **TINY)),
+        "compensated": make_rig(SynthConfig(out=base / "comp", seed=4, perturb="paper", layout="plaza", lidar_scans="compensated", **TINY)),
+    }
+
+
+def test_deskew_of_a_raw_sweep(tiny_rigs, tmp_path):
+    """Placed point by point at its firing time, a raw sweep lies on the scene; placed at the stamp it does not. A
+    compensated scan (no times) lies on the scene placed at its stamp."""
+    rig = load_rig(tiny_rigs["raw"])
+    truth = load_calibration(rig.root / "ground_truth.json")
+    scene = build_scene(SynthConfig(out=tmp_path, seed=3, **TINY))
+    traj = Trajectory.from_rig(rig)
+    ext = Extrinsic(truth.T_ref_sensor["lidar"][:3, :3], truth.T_ref_sensor["lidar"][:3, 3], truth.time_offset["lidar"])
+    frame = rig.frames_of("lidar")[10]
+    points, times, _ = load_lidar_scan(rig.root / frame.file_path)
+    stamp = frame.timestamp - rig.trajectory_stamps[0]
+    deskewed = scene.distance(place_points(traj, ext, points.astype(np.float64), stamp + times))
+    skewed = scene.distance(place_points(traj, ext, points.astype(np.float64), np.full(len(points), stamp)))
+    assert np.percentile(deskewed, 99) < 2e-3
+    assert np.percentile(skewed, 90) > 0.1  # measured 0.21 m (ground points slide along the ground and stay on it)
+
+    crig = load_rig(tiny_rigs["compensated"])
+    ctruth = load_calibration(crig.root / "ground_truth.json")
+    cext = Extrinsic(ctruth.T_ref_sensor["lidar"][:3, :3], ctruth.T_ref_sensor["lidar"][:3, 3], ctruth.time_offset["lidar"])
+    cframe = crig.frames_of("lidar")[10]
+    cpoints, ctimes, _ = load_lidar_scan(crig.root / cframe.file_path)
+    assert ctimes is None
+    cscene = build_scene(SynthConfig(out=tmp_path, seed=4, layout="plaza", **TINY))
+    placed = place_points(Trajectory.from_rig(crig), cext, cpoints.astype(np.float64), np.full(len(cpoints), cframe.timestamp - crig.trajectory_stamps[0]))
+    assert np.percentile(cscene.distance(placed), 99) < 2e-3
+
+
+@pytest.mark.parametrize("kind", ["raw", "compensated"])
+def test_end_to_end_from_the_paper_perturbation(tiny_rigs, kind):
+    """From 86.6 cm / 8.8 deg / 100 ms to within the issue's bounds (1 cm / 0.02 deg / 0.5 ms) on a 2 s tiny drive."""
+    rig = load_rig(tiny_rigs[kind])
+    truth = load_calibration(rig.root / "ground_truth.json")
+    result = calibrate_lidars(rig, LidarFirstConfig(), log=lambda _: None)
+    errors = calibration_report_errors(result.calibration, truth)["lidar"]
+    assert errors["translation_cm"] < 1.0 and errors["rotation_deg"] < 0.02 and errors["time_ms"] < 0.5, errors
+    assert result.lidars["lidar"].deskewed == (kind == "raw")
+    for name in ("cam_front_right", "cam_left"):  # cameras stay at their priors
+        assert np.array_equal(result.calibration.T_ref_sensor[name], rig.sensors[name].T_ref_sensor)
+
+
+def test_cli_writes_outputs_and_never_the_dataset(tiny_rigs, tmp_path, capsys):
+    dataset = tiny_rigs["raw"]
+    before = tree_hash(dataset)
+    summary = run_lidar_calibration(LidarCalibrateConfig(dataset=dataset, output_dir=tmp_path / "out"))
+    assert tree_hash(dataset) == before
+    out = tmp_path / "out"
+    calib = load_calibration(out / "calibration.json")
+    assert set(calib.T_ref_sensor) == {"cam_front", "cam_front_right", "cam_left", "lidar"}
+    stored = json.loads((out / "lidar_first.json").read_text())
+    assert stored["sensors"]["lidar"]["errors_after"] == summary["sensors"]["lidar"]["errors_after"]
+    assert [d["name"] for d in stored["sensors"]["lidar"]["observability"]] == list(PARAMETERS)
+    assert len(stored["sensors"]["lidar"]["history"]) >= 3
+    assert (out / "lidar_first.md").is_file() and (out / "lidar_first_convergence.png").stat().st_size > 1000
+    text = capsys.readouterr().out
+    assert "errors after the LiDAR-first stage:" in text and "observability" in text
+
+
+def copy_rig(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def edit_rig(root: Path, edit) -> None:
+    data = json.loads((root / "rig.json").read_text())
+    edit(data)
+    (root / "rig.json").write_text(json.dumps(data))
+
+
+def test_bad_input_one_line_errors(tiny_rigs, tmp_path):
+    src = tiny_rigs["raw"]
+    # fewer than 3 scans
+    few = copy_rig(src, tmp_path / "few")
+    edit_rig(few, lambda d: d.update(frames=[f for f in d["frames"] if f["sensor"] != "lidar" or f["file_path"].endswith(("000000.npz", "000001.npz"))]))
+    with pytest.raises(LidarFirstError, match=r"rig.json: sensors.lidar: needs at least 3 usable scans, got 2 of 2$"):
+        calibrate_lidars(load_rig(few), LidarFirstConfig(), log=lambda _: None)
+    # scans outside the trajectory's time span
+    late = copy_rig(src, tmp_path / "late")
+    edit_rig(late, lambda d: [f.update(timestamp=f["timestamp"] + 100.0) for f in d["frames"] if f["sensor"] == "lidar"])
+    with pytest.raises(LidarFirstError, match=r"needs at least 3 usable scans, got 0 of 20 \(.*outside the reference trajectory's time span by more than 0.2 s"):
+        calibrate_lidars(load_rig(late), LidarFirstConfig(), log=lambda _: None)
+    # no overlap: a trajectory 1000x too fast puts consecutive scans hundreds of metres apart
+    fast = copy_rig(src, tmp_path / "fast")
+    rows = [line.split() for line in (fast / "reference_poses.txt").read_text().splitlines() if not line.startswith("#")]
+    (fast / "reference_poses.txt").write_text("\n".join(" ".join([r[0], *(str(1000 * float(v)) for v in r[1:4]), *r[4:]]) for r in rows) + "\n")
+    with pytest.raises(LidarFirstError, match=r"sensors.lidar: the scans do not overlap"):
+        calibrate_lidars(load_rig(fast), LidarFirstConfig(), log=lambda _: None)
+    # a scan of NaN points
+    nan = copy_rig(src, tmp_path / "nan")
+    np.savez(nan / "lidar/lidar/000004.npz", points=np.full((100, 3), np.nan, np.float32))
+    with pytest.raises(LidarFirstError, match=r"000004.npz: points: no points left after dropping non-finite points"):
+        calibrate_lidars(load_rig(nan), LidarFirstConfig(), log=lambda _: None)
+    # not a LiDAR
+    with pytest.raises(LidarFirstError, match=r"sensors.cam_left: not a non-reference LiDAR of this rig \(LiDARs: \['lidar'\]\)"):
+        calibrate_lidars(load_rig(src), LidarFirstConfig(), sensors=["cam_left"], log=lambda _: None)
+
+
+def test_cli_bad_input_exits_with_one_line(tiny_rigs, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        run_lidar_calibration(LidarCalibrateConfig(dataset=tmp_path / "missing", output_dir=tmp_path / "o"))
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("moisst-lidar-calibrate: error:") and "\n" not in err
+    with pytest.raises(SystemExit):
+        run_lidar_calibration(LidarCalibrateConfig(dataset=tiny_rigs["raw"], output_dir=tiny_rigs["raw"] / "out"))
+    assert "must not be inside the dataset folder" in capsys.readouterr().err
