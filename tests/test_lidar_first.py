@@ -297,3 +297,35 @@ def test_cli_bad_input_exits_with_one_line(tiny_rigs, tmp_path, capsys):
     with pytest.raises(SystemExit):
         run_lidar_calibration(LidarCalibrateConfig(dataset=tiny_rigs["raw"], output_dir=tiny_rigs["raw"] / "out"))
     assert "must not be inside the dataset folder" in capsys.readouterr().err
+
+
+def test_calibrate_runs_the_stage_first_and_holds_the_lidar(tiny_rigs, tmp_path):
+    """``moisst-calibrate`` runs the stage into OUT/lidar_first, starts the NeRF from its estimate, holds the LiDAR
+    there (the NeRF's estimate equals the stage's exactly) and records the stage's iterations at negative steps of
+    the history; ``--no-lidar-first`` does none of it."""
+    from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
+    from moisst_ns.cli.evaluate import read_history
+
+    dataset = tiny_rigs["raw"]
+    before = tree_hash(dataset)
+    out = tmp_path / "out"
+    config_path = run_calibration(CalibrateConfig(dataset=dataset, output_dir=out, max_num_iterations=12, seed=0, threads=2, report=False))
+    assert tree_hash(dataset) == before
+    stage = load_calibration(out / "lidar_first" / "calibration.json")
+    final = load_calibration(out / "calibration.json")
+    np.testing.assert_allclose(final.T_ref_sensor["lidar"], stage.T_ref_sensor["lidar"], atol=1e-9)
+    assert final.time_offset["lidar"] == pytest.approx(stage.time_offset["lidar"], abs=1e-9)
+    truth = load_calibration(dataset / "ground_truth.json")
+    assert calibration_report_errors(final, truth)["lidar"]["translation_cm"] < 1.0
+    history = read_history(config_path.parent / "calibration_history.csv")
+    steps = history["lidar"]["step"]
+    stage_rows = int((steps < 0).sum())
+    assert stage_rows == len(json.loads((out / "lidar_first" / "lidar_first.json").read_text())["sensors"]["lidar"]["history"])
+    assert list(steps[:stage_rows]) == list(range(-stage_rows, 0)) and steps[stage_rows] >= 0
+    assert history["lidar"]["err_translation_cm"][0] > 10 and history["lidar"]["err_translation_cm"][stage_rows - 1] < 1.0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["lidar_first"]["lidar"]["errors_after"]["translation_cm"] < 1.0
+
+    plain = tmp_path / "plain"
+    run_calibration(CalibrateConfig(dataset=dataset, output_dir=plain, max_num_iterations=4, seed=0, threads=2, report=False, lidar_first=False))
+    assert not (plain / "lidar_first").exists() and "lidar_first" not in json.loads((plain / "summary.json").read_text())

@@ -193,6 +193,8 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         model.camera_optimizer.frozen_sensors = tuple(stage["sensors"])
         model.registration_sensors = "cameras"  # the calibrated LiDARs shape the scene while the cameras register
         config.save_config()
+        if not cfg.resume:
+            write_stage_history(stage, truth, config.get_base_dir() / "calibration_history.csv")
 
     seed_everything(cfg.seed)
     trainer = config.setup(local_rank=0, world_size=1)
@@ -264,6 +266,36 @@ def run_lidar_first(cfg: CalibrateConfig, rig, prior, truth, out: Path) -> Optio
             line += f": {e['translation_cm']:.2f} cm / {e['rotation_deg']:.3f} deg / {e['time_ms']:.2f} ms from the truth"
         print(line + (f"; weakly observable: {', '.join(entry['weak'])}" if entry["weak"] else ""))
     return stage
+
+
+def write_stage_history(stage: dict, truth, path: Path) -> None:
+    """Start the run's history CSV with the LiDAR-first stage's outer iterations, at steps -N..-1 (the NeRF's
+    rows follow from step 0), in the columns ``MoisstModel.log_calibration`` writes."""
+    import csv
+
+    import numpy as np
+    import torch
+
+    from moisst_ns.rig.calibration import calibration_report_errors
+    from moisst_ns.rig.format import Calibration
+    from moisst_ns.rig.geometry import pose_to_xyz_rpy
+
+    columns = ["step", "sensor", "x", "y", "z", "roll", "pitch", "yaw", "delta_ms", "err_translation_cm", "err_rotation_deg",
+               "err_time_ms", "elapsed_s"]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        for name, entry in stage["sensors"].items():
+            history = entry["history"]
+            for k, h in enumerate(history):
+                pose = np.asarray(h["T_ref_sensor"])
+                values = dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), pose_to_xyz_rpy(torch.from_numpy(pose)).tolist()))
+                values.update(delta_ms=1000 * h["time_offset"], elapsed_s=h["elapsed_s"])
+                if truth is not None:
+                    est = Calibration(truth.reference_sensor, {name: pose}, {name: h["time_offset"]})
+                    values.update({f"err_{c}": v for c, v in calibration_report_errors(est, truth)[name].items()})
+                writer.writerow([k - len(history), name] + [f"{values[c]:.9g}" if c in values else "" for c in columns[2:]])
 
 
 def main() -> None:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import open3d as o3d
@@ -133,6 +133,33 @@ class Trajectory:
         return rot, self.translations[seg] + alpha[:, None] * delta_p, step / dt, delta_p / dt
 
 
+@dataclass
+class PointTimes:
+    """Per-point times kept as indices into their distinct values: a sweep fires a few thousand distinct times for
+    tens of thousands of points (a compensated scan one), so eq. 1 is evaluated once per distinct time."""
+
+    unique: Float[np.ndarray, "num_unique"]
+    index: Int[np.ndarray, "num"]
+
+    @classmethod
+    def of(cls, times: Float[np.ndarray, "num"]) -> "PointTimes":
+        unique, index = np.unique(times, return_inverse=True)
+        return cls(unique, index.reshape(-1))
+
+    def __getitem__(self, selection) -> "PointTimes":
+        return PointTimes(self.unique, self.index[selection])
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+def trajectory_at(traj: Trajectory, times, offset: float):
+    """``traj.pose_and_rates(times + offset)`` for an array of times or ``PointTimes``."""
+    if isinstance(times, PointTimes):
+        return tuple(a[times.index] for a in traj.pose_and_rates(times.unique + offset))
+    return traj.pose_and_rates(np.asarray(times) + offset)
+
+
 def right_jacobian(rotvec: Float[np.ndarray, "3"]) -> Float[np.ndarray, "3 3"]:
     """Right Jacobian of SO(3)'s exponential: ``Exp(w + e) ~ Exp(w) Exp(J_r(w) e)``."""
     theta = float(np.linalg.norm(rotvec))
@@ -161,7 +188,7 @@ class Extrinsic:
         return pose
 
 
-def place_points(traj: Trajectory, ext: Extrinsic, points: Float[np.ndarray, "num 3"], times: Float[np.ndarray, "num"]) -> Float[np.ndarray, "num 3"]:
+def place_points(traj: Trajectory, ext: Extrinsic, points: Float[np.ndarray, "num 3"], times: Union[Float[np.ndarray, "num"], PointTimes]) -> Float[np.ndarray, "num 3"]:
     """Paper eq. 1-2 per point: ``x = T_r(t + delta) @ ref_T_L @ p``.
 
     Args:
@@ -173,14 +200,14 @@ def place_points(traj: Trajectory, ext: Extrinsic, points: Float[np.ndarray, "nu
     Returns:
         World points, metres.
     """
-    rot, trans, _, _ = traj.pose_and_rates(times + ext.time_offset)
+    rot, trans, _, _ = trajectory_at(traj, times, ext.time_offset)
     ref = points @ ext.rotation.T + ext.translation
     return np.einsum("nij,nj->ni", rot, ref) + trans
 
 
 def placement_jacobian(
     traj: Trajectory, ext: Extrinsic, increment: Float[np.ndarray, "7"], points: Float[np.ndarray, "num 3"],
-    times: Float[np.ndarray, "num"], normals: Float[np.ndarray, "num 3"],
+    times: Union[Float[np.ndarray, "num"], PointTimes], normals: Float[np.ndarray, "num 3"],
 ) -> Tuple[Float[np.ndarray, "num"], Float[np.ndarray, "num 7"]]:
     """``n . x`` and its derivative with respect to ``increment = (w, v, d)`` of ``ext.updated(increment)``.
 
@@ -198,7 +225,7 @@ def placement_jacobian(
         (``n . x`` per point, metres; its Jacobian, metres per radian / metre / second).
     """
     cur = ext.updated(increment)
-    rot, trans, omega, vel = traj.pose_and_rates(times + cur.time_offset)
+    rot, trans, omega, vel = trajectory_at(traj, times, cur.time_offset)
     ref = points @ cur.rotation.T + cur.translation
     x = np.einsum("nij,nj->ni", rot, ref) + trans
     u = np.einsum("nji,nj->ni", rot, normals)  # R_r^T n
@@ -220,7 +247,7 @@ class ScanSet:
     sensor: str
     points: Float[np.ndarray, "num 3"]
     """Points in the LiDAR frame, metres."""
-    times: Float[np.ndarray, "num"]
+    times: PointTimes
     """Own-clock firing time of each point, seconds since the trajectory's ``t0`` (stamp + per-point offset)."""
     offsets: Int[np.ndarray, "num_scans_plus_one"]
     """Scan ``k`` holds points ``offsets[k]:offsets[k+1]``."""
@@ -293,7 +320,7 @@ def load_scans(rig: Rig, sensor: str, traj: Trajectory, config: LidarFirstConfig
         raise LidarFirstError(f"{where}: needs at least 3 usable scans, got {len(pts)} of {len(frames)}{reasons}")
     for note in dropped:
         log(f"[lidar-first] {sensor}: dropped {note}")
-    return ScanSet(sensor, np.concatenate(pts), np.concatenate(tms), np.asarray(offsets), np.asarray(stamps),
+    return ScanSet(sensor, np.concatenate(pts), PointTimes.of(np.concatenate(tms)), np.asarray(offsets), np.asarray(stamps),
                    np.concatenate(normals), np.concatenate(planar), np.concatenate(thickness), sources, files, deskewed, dropped)
 
 
@@ -358,8 +385,8 @@ def find_correspondences(traj: Trajectory, ext: Extrinsic, scans: ScanSet, pairs
         keep = (dist2.numpy()[:, 0] < radius * radius) & scans.planar[tgt]
         src_all.append(sources[keep]), tgt_all.append(tgt[keep])
     src, tgt = np.concatenate(src_all), np.concatenate(tgt_all)
-    rot_b, _, _, _ = traj.pose_and_rates(scans.times[tgt] + ext.time_offset)
-    rot_a, _, _, _ = traj.pose_and_rates(scans.times[src] + ext.time_offset)
+    rot_b, _, _, _ = trajectory_at(traj, scans.times[tgt], ext.time_offset)
+    rot_a, _, _, _ = trajectory_at(traj, scans.times[src], ext.time_offset)
     normals = np.einsum("nij,nj->ni", rot_b, scans.normals[tgt] @ ext.rotation.T)
     agree = np.abs(np.einsum("ni,ni->n", normals, np.einsum("nij,nj->ni", rot_a, scans.normals[src] @ ext.rotation.T)))
     keep = agree >= config.normal_agreement
@@ -390,7 +417,8 @@ class LidarResult:
     prior: Extrinsic
     estimate: Extrinsic
     history: List[Dict[str, float]]
-    """Per outer iteration: radius, baseline, pairs, correspondences, robust cost, inlier RMS, change, wall."""
+    """Per outer iteration: radius, baseline, pairs, correspondences, robust cost, inlier RMS, change, wall time and
+    the estimate after it (``T_ref_sensor``, ``time_offset``)."""
     observability: Observability
     num_scans: int
     deskewed: bool
@@ -455,7 +483,7 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
             "correspondences": int(len(corr.src)), "cost": float(solution.cost / max(len(residuals), 1)),
             "inlier_rms_m": float(np.sqrt(np.mean(residuals[inliers] ** 2))) if inliers.any() else float("nan"),
             "inlier_fraction": float(inliers.mean()), "change_m": change[0], "change_rad": change[1], "change_s": change[2],
-            "elapsed_s": time.perf_counter() - start,
+            "elapsed_s": time.perf_counter() - start, "T_ref_sensor": ext.matrix().tolist(), "time_offset": ext.time_offset,
         })
         h = history[-1]
         log(f"[lidar-first] {sensor} it {outer}: radius {radius:.2f} m, pairs {h['pairs']}, {h['correspondences']} corr., "
