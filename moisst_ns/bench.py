@@ -275,6 +275,24 @@ def _cell(stat: Optional[Tuple[float, float]], digits: int) -> str:
     return "–" if stat is None else f"{stat[0]:.{digits}f} ± {stat[1]:.{digits}f}"
 
 
+def stage_errors(runs: List[dict]) -> Dict[str, Dict[str, float]]:
+    """Per LiDAR, the LiDAR-first stage's errors and wall time averaged over the runs that ran it."""
+    out: Dict[str, Dict[str, List[float]]] = {}
+    for run in runs:
+        for sensor, entry in run.get("lidar_first", {}).items():
+            if "errors_after" in entry:
+                cell = out.setdefault(sensor, {k: [] for k in ERR_KEYS + ("wall_s",)})
+                for k in ERR_KEYS:
+                    cell[k].append(entry["errors_after"][k])
+                cell["wall_s"].append(entry["wall_s"])
+    return {s: {k: float(np.mean(v)) for k, v in cols.items()} for s, cols in out.items()}
+
+
+def _stage_cell(case: dict, sensor: str) -> str:
+    e = case.get("lidar_first", {}).get(sensor)
+    return "–" if e is None else f"{e['translation_cm']:.2f} / {e['rotation_deg']:.3f} / {e['time_ms']:.2f} ({e['wall_s']:.0f} s)"
+
+
 def markdown(result: dict) -> str:
     """The Markdown report of a benchmark result."""
     raw, cases = result["scenario"], result["cases"]
@@ -313,12 +331,13 @@ def markdown(result: dict) -> str:
                     b = before.get(sensor, {})
                     rows.append(f"| {label or case['id']} | {sensor} | {b.get('translation_cm', float('nan')):.1f} / "
                                 f"{b.get('rotation_deg', float('nan')):.2f} / {b.get('time_ms', float('nan')):.0f} | "
-                                f"{_cell(s.get('translation_cm'), 1)} | {_cell(s.get('rotation_deg'), 2)} | {_cell(s.get('time_ms'), 1)} |")
+                                f"{_cell(s.get('translation_cm'), 1)} | {_cell(s.get('rotation_deg'), 2)} | {_cell(s.get('time_ms'), 1)} | "
+                                f"{_stage_cell(case, sensor)} |")
                 if case.get("failed"):
-                    rows.append(f"| {label or case['id']} | – | {case['failed']} | | | |")
+                    rows.append(f"| {label or case['id']} | – | {case['failed']} | | | | |")
         if rows:
-            lines += [f"## {title}", "", "| case | sensor | before (cm / ° / ms) | translation (cm) | rotation (°) | time (ms) |",
-                      "| --- | --- | --- | --- | --- | --- |"] + rows + [""]
+            lines += [f"## {title}", "", "| case | sensor | before (cm / ° / ms) | translation (cm) | rotation (°) | time (ms) | "
+                      "LiDAR-first stage alone (cm / ° / ms, wall) |", "| --- | --- | --- | --- | --- | --- | --- |"] + rows + [""]
     # Table VI
     rows = []
     for case in cases:
@@ -416,7 +435,7 @@ def run_bench(cfg: BenchConfig) -> dict:
                 before.setdefault(s, []).append(e)
         before = {s: {k: float(np.mean([e[k] for e in es])) for k in ERR_KEYS} for s, es in before.items()}
         frame = {key: merge_frame_errors([r[key] for r in ok]) for key in ("frame_errors", "frame_errors_prior")}
-        cases.append({"id": case["id"], "tables": case["tables"], "perturb": case["perturb"], "optimise": case.get("optimise", "both"),
+        cases.append({"lidar_first": stage_errors(ok), "id": case["id"], "tables": case["tables"], "perturb": case["perturb"], "optimise": case.get("optimise", "both"),
                       "patch_size": case.get("patch_size"),
                       "losses": case.get("losses", []), "runs": runs, "pooled": pooled(ok, raw["last"]), "before": before,
                       "failed": None if ok else "; ".join(r.get("failed", "") for r in runs), **frame})

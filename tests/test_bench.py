@@ -111,6 +111,10 @@ def test_micro_bench_fills_every_section(tmp_path):
     # only-temporal never moves the extrinsics
     only_t = next(c for c in saved["cases"] if c["id"] == "only-temporal")
     assert only_t["pooled"]["cam_front_right"]["translation_cm"][0] == pytest.approx(86.6, abs=0.1)
+    # the LiDAR-first stage ran in every case (rigs with a LiDAR): its own column, and temporal-only holds the extrinsic
+    assert set(combined["lidar_first"]) == {"lidar"} and combined["lidar_first"]["lidar"]["wall_s"] > 0
+    assert only_t["lidar_first"]["lidar"]["translation_cm"] == pytest.approx(86.6, abs=0.1)
+    assert "LiDAR-first stage alone" in md
     timing = result["timing"][0]
     assert timing["method_run"] == ["moisst", "moisst"]
     assert timing["moisst_s"] > 0 and timing["nerfacto_s"] > 0 and timing["ratio"] == pytest.approx(timing["moisst_s"] / timing["nerfacto_s"])

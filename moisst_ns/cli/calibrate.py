@@ -253,7 +253,8 @@ def run_lidar_first(cfg: CalibrateConfig, rig, prior, truth, out: Path) -> Optio
 
     if not lidar_sensors(rig):
         return None
-    config = LidarFirstConfig(max_time_offset=cfg.max_time_offset if cfg.max_time_offset is not None else 0.3, seed=cfg.seed)
+    config = LidarFirstConfig(max_time_offset=cfg.max_time_offset if cfg.max_time_offset is not None else 0.3, seed=cfg.seed,
+                              estimate_extrinsic=cfg.extrinsics, estimate_time_offset=cfg.time_offsets)
     try:
         result = calibrate_lidars(rig, config)
     except LidarFirstError as err:

@@ -89,6 +89,10 @@ class LidarFirstConfig:
     (placing them would extrapolate the trajectory's end segment too far); fewer than 3 left is an error."""
     seed: int = 0
     """Seed of the source-point sampling."""
+    estimate_extrinsic: bool = True
+    """Estimate ``ref_T_L`` (off: held at the prior, as in the paper's temporal-only Table II)."""
+    estimate_time_offset: bool = True
+    """Estimate ``delta_L`` (off: held at the prior, as in the paper's spatial-only Table I)."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -444,6 +448,9 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     scans = load_scans(rig, sensor, traj, config, log)
     prior = Extrinsic(spec.T_ref_sensor[:3, :3].copy(), spec.T_ref_sensor[:3, 3].copy(), float(spec.time_offset))
     pairs, baselines = scan_pairs(traj, scans, prior.time_offset, config)
+    free = np.array([i for i in range(7) if (i < 6 and config.estimate_extrinsic) or (i == 6 and config.estimate_time_offset)])
+    if len(free) == 0:
+        raise LidarFirstError("estimate_extrinsic and estimate_time_offset are both off: nothing to calibrate")
     ext, history = prior, []
     longest = float(baselines.max()) if len(baselines) else 0.0
     corr = None
@@ -458,22 +465,25 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
                 f"sampled points found a planar neighbour within {radius:.2f} m in the paired scans (wrong trajectory, "
                 "time stamps or a static LiDAR?)")
         spent = ext.time_offset - prior.time_offset
-        lower = np.full(7, -np.inf)
-        upper = np.full(7, np.inf)
+        lower, upper = np.full(7, -np.inf), np.full(7, np.inf)
         lower[6], upper[6] = -config.max_time_offset - spent, config.max_time_offset - spent
         cache: Dict[bytes, Tuple[np.ndarray, np.ndarray]] = {}
 
-        def evaluate(inc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-            key = inc.tobytes()
+        def evaluate(free_inc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+            key = free_inc.tobytes()
             if key not in cache:
+                inc = np.zeros(7)
+                inc[free] = free_inc
+                residuals, jac = consistency_residuals(traj, ext, scans, corr, inc)
                 cache.clear()
-                cache[key] = consistency_residuals(traj, ext, scans, corr, inc)
+                cache[key] = residuals, jac[:, free]
             return cache[key]
 
-        solution = least_squares(lambda x: evaluate(x)[0], np.zeros(7), jac=lambda x: evaluate(x)[1], bounds=(lower, upper),
-                                 loss="huber", f_scale=config.huber, x_scale="jac", method="trf",
-                                 max_nfev=config.max_inner_evaluations)
-        inc = solution.x
+        solution = least_squares(lambda x: evaluate(x)[0], np.zeros(len(free)), jac=lambda x: evaluate(x)[1],
+                                 bounds=(lower[free], upper[free]), loss="huber", f_scale=config.huber, x_scale="jac",
+                                 method="trf", max_nfev=config.max_inner_evaluations)
+        inc = np.zeros(7)
+        inc[free] = solution.x
         ext = ext.updated(inc)
         residuals = solution.fun
         inliers = np.abs(residuals) < config.huber
