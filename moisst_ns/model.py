@@ -59,17 +59,20 @@ def hash_level_weights(progress: float, num_levels: int, start_levels: float) ->
     return (1.0 - torch.cos(math.pi * torch.clamp(alpha - k, 0.0, 1.0))) / 2.0
 
 
-def lidar_depth_loss(expected_depth: Float[Tensor, "num_rays"], measured_range: Float[Tensor, "num_rays"]) -> Float[Tensor, ""]:
+def lidar_depth_loss(expected_depth: Float[Tensor, "num_rays"], measured_range: Float[Tensor, "num_rays"],
+                     units_per_metre: float = 1.0) -> Float[Tensor, ""]:
     """Paper eq. 7: squared error between the rendered (expected) depth of a LiDAR ray and the measured range.
 
     Args:
         expected_depth: volume-rendered expected distance along each unit-direction LiDAR ray.
         measured_range: the LiDAR's range for that ray, same units.
+        units_per_metre: how many of those units make a metre (the dataparser's ``world_scale`` for model units);
+            the error is divided by it, so the loss is in square metres (1: in the input's own units, the paper's).
 
     Returns:
         The mean squared error.
     """
-    return (expected_depth - measured_range.to(expected_depth)).pow(2).mean()
+    return ((expected_depth - measured_range.to(expected_depth)) / units_per_metre).pow(2).mean()
 
 
 MODEL_SCHEDULE_FIELDS = ("calibration_warmup_steps", "registration_steps", "depth_loss_start", "depth_loss_ramp_steps", "hash_weight_decay_steps")
@@ -125,7 +128,11 @@ class MoisstModelConfig(NerfactoModelConfig):
     """lambda_D of paper eq. 13: weight of the LiDAR depth loss (L2 on the expected ray depth, model units).
     Model units are metres x the dataparser's ``world_scale`` (the drive normalised into the unit box), so the weight
     per square metre is ``lambda_D * world_scale**2`` and falls with the drive's extent (0.03 on the 50-frame
-    synthetic rig). moisst-floor measured a five-fold lower floor with 500 on the tiny rig; docs/method.md."""
+    synthetic rig). moisst-floor measured a five-fold lower floor with 500 on the tiny rig; docs/method.md. With
+    ``depth_loss_units="metric"`` it is per square metre instead, whatever the drive's extent."""
+    depth_loss_units: Literal["model", "metric"] = "model"
+    """Units of the depth loss: ``model`` (the paper's, normalised depths) or ``metric`` (the depth error in metres,
+    so ``depth_loss_mult`` is per m^2 on every rig)."""
     depth_loss_start: int = 0
     """Step from which the depth loss applies (paper: after 2 epochs of colour-only training)."""
     dssim_loss_mult: float = 0.1
@@ -368,7 +375,9 @@ class MoisstModel(NerfactoModel):
             ramp = 1.0
             if self.config.depth_loss_ramp_steps > 0:
                 ramp = min(1.0, (self._step - self.config.depth_loss_start + 1) / self.config.depth_loss_ramp_steps)
-            loss_dict["depth_loss"] = ramp * self.config.depth_loss_mult * lidar_depth_loss(outputs["expected_depth"][lidar, 0], batch["lidar_range"])
+            scale = float(self.camera_optimizer.world_scale) if self.config.depth_loss_units == "metric" else 1.0
+            loss_dict["depth_loss"] = ramp * self.config.depth_loss_mult * lidar_depth_loss(
+                outputs["expected_depth"][lidar, 0], batch["lidar_range"], units_per_metre=scale)
         if self.training:
             for name, value in loss_dict.items():
                 if not bool(torch.isfinite(value).all()):

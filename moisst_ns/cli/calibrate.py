@@ -63,6 +63,9 @@ class CalibrateConfig:
     """Checkpoint every N steps and keep every checkpoint (default: the method's, latest only)."""
     threads: Optional[int] = None
     """torch CPU threads (pin for bit-repeatable runs); torch's default when omitted."""
+    depth_loss_per_m2: Optional[float] = None
+    """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
+    method's normalised-depth loss (the paper's) when omitted."""
     lidar_first: bool = True
     """Calibrate every LiDAR from its own scans before the NeRF (``moisst-lidar-calibrate``, into OUT/lidar_first);
     the NeRF starts from that estimate, holds the LiDARs there and lets their depth shape the scene.
@@ -152,6 +155,8 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     config.timestamp = "run"
     config.machine.seed = cfg.seed
     model = config.pipeline.model
+    if cfg.depth_loss_per_m2 is not None:
+        model.depth_loss_units, model.depth_loss_mult = "metric", cfg.depth_loss_per_m2
     if not cfg.depth_loss:
         model.depth_loss_mult = 0.0
     if not cfg.dssim_loss:

@@ -47,6 +47,9 @@ class FloorConfig:
     """Random seed (sampling, initialisation)."""
     threads: Optional[int] = None
     """torch CPU threads; torch's default when omitted."""
+    depth_loss_per_m2: Optional[float] = None
+    """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
+    method's normalised-depth loss (the paper's) when omitted."""
 
 
 def floor_errors(rows: List[Dict[str, float]], average_last: int) -> Dict[str, Dict[str, float]]:
@@ -86,6 +89,8 @@ def run_floor(cfg: FloorConfig) -> Dict[str, Dict[str, float]]:
     config.machine.seed = cfg.seed
     config.vis = "tensorboard"
     model, datamanager = config.pipeline.model, config.pipeline.datamanager
+    if cfg.depth_loss_per_m2 is not None:
+        model.depth_loss_units, model.depth_loss_mult = "metric", cfg.depth_loss_per_m2
     # The scene is built at the true calibration, so the phases that protect it from miscalibrated sensors
     # (reference-only warm-up, detached registration, coarse-to-fine) are switched off: the best scene of this budget.
     model.camera_optimizer.mode = "off"
