@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
-import tyro
 
 REPO = Path(__file__).resolve().parents[1]
 LOSS_SWITCHES = {"no-depth": "depth_loss", "no-dssim": "dssim_loss", "no-depth-smoothness": "depth_smoothness_loss"}
@@ -166,8 +165,8 @@ def calibrate_case(rig: Path, out: Path, raw: dict, case: dict, steps: Optional[
     """One moisst-calibrate run; returns its summary plus the history statistics and per-frame pose errors."""
     import torch
 
-    from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
-    from moisst_ns.cli.evaluate import read_history
+    from moisst_ns.pipeline import CalibrateConfig, CalibrationError, run_calibration
+    from moisst_ns.runs.history import read_history
     from moisst_ns.rig.calibration import RigData, frame_pose_errors, frame_poses
     from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 
@@ -179,8 +178,8 @@ def calibrate_case(rig: Path, out: Path, raw: dict, case: dict, steps: Optional[
     start = time.perf_counter()
     try:
         config_yml = run_calibration(cfg)
-    except SystemExit as err:  # a stopped run (non-finite values...) is a result, not a crash of the benchmark
-        return {"failed": f"moisst-calibrate stopped (exit {err.code})", "rig": str(rig)}
+    except CalibrationError as err:  # a stopped run (non-finite values...) is a result, not a crash of the benchmark
+        return {"failed": f"moisst-calibrate stopped: {err}", "rig": str(rig)}
     result = json.loads((out / "summary.json").read_text())
     result["total_s"] = time.perf_counter() - start
     result["seconds_per_step"] = result["wall_time_s"] / result["iterations"]
@@ -499,18 +498,3 @@ def run_bench(cfg: BenchConfig) -> dict:
         shutil.copyfile(out / "bench_error_vs_time.png", REPO / "docs" / "bench_error_vs_time.png")
     print(md)
     return result
-
-
-def main() -> None:
-    """Console script ``moisst-bench``."""
-    cfg = tyro.cli(BenchConfig)
-    if cfg.quick and cfg.full:
-        raise SystemExit("moisst-bench: error: --quick and --full are exclusive")
-    try:
-        run_bench(cfg)
-    except BenchError as err:
-        raise SystemExit(f"moisst-bench: error: {err}") from None
-
-
-if __name__ == "__main__":
-    main()

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Annotated, Dict, List, Literal, Optional, Sequence, Tuple
@@ -683,24 +682,3 @@ def convert(config: Kitti360Config) -> Path:
     (out / "rig.json").write_text(json.dumps(rig, indent=1) + "\n")
     Calibration(REFERENCE, {s: calib.T_ref[s] for s in sensors}, {s: 0.0 for s in sensors}).write(out / "ground_truth.json")
     return out
-
-
-def main() -> None:
-    """Console script ``moisst-kitti360-to-rig``."""
-    config = tyro.cli(Kitti360Config)
-    start = time.perf_counter()
-    try:
-        out = convert(config)
-    except RigFormatError as err:
-        raise SystemExit(f"moisst-kitti360-to-rig: error: {err}") from None
-    rig = json.loads((out / "rig.json").read_text())
-    counts = {}
-    for f in rig["frames"]:
-        counts[f["sensor"]] = counts.get(f["sensor"], 0) + 1
-    print(f"moisst-kitti360-to-rig: wrote {out} ({config.sequence}, "
-          + ", ".join(f"{n} {c} frames" for n, c in counts.items())
-          + f", perturb {config.perturb}) in {time.perf_counter() - start:.1f} s")
-
-
-if __name__ == "__main__":
-    main()

@@ -9,7 +9,6 @@ optional reference-only warm-up and a BARF-style coarse-to-fine release of the h
 
 from __future__ import annotations
 
-import csv
 import math
 import time
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ from nerfstudio.field_components.encodings import HashEncoding
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from moisst_ns.runs.history import append_history
 from moisst_ns.viewer_panel import CalibrationPanel
 from moisst_ns.losses import depth_smoothness_loss, dssim_loss
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
@@ -272,18 +272,9 @@ class MoisstModel(NerfactoModel):
         self.calibration.update(summary)
         if self.config.print_calibration:
             CONSOLE.print(f"[calibration] step {step}: " + " | ".join(self.camera_optimizer.change_summary()))
-        columns = ["step", "sensor", "x", "y", "z", "roll", "pitch", "yaw", "delta_ms"]
-        columns += ["err_translation_cm", "err_rotation_deg", "err_time_ms", "elapsed_s"]
         if not hasattr(self, "_log_start"):
             self._log_start = time.perf_counter()
-        summary = {n: dict(v, elapsed_s=time.perf_counter() - self._log_start) for n, v in summary.items()}
-        new = not path.exists()
-        with path.open("a", newline="") as handle:
-            writer = csv.writer(handle)
-            if new:
-                writer.writerow(columns)
-            for name, values in summary.items():
-                writer.writerow([step, name] + [f"{values[c]:.9g}" if c in values else "" for c in columns[2:]])
+        append_history(path, step, {n: dict(v, elapsed_s=time.perf_counter() - self._log_start) for n, v in summary.items()})
 
     # --- registration: non-reference rays see a detached scene -------------------------------------------------
 

@@ -27,10 +27,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
-import tyro
 from jaxtyping import Bool, Float, UInt8
 
 COLORMAP = "turbo"
@@ -414,7 +413,7 @@ def convergence_plots(history: Dict[str, Dict[str, np.ndarray]], truth: Optional
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from moisst_ns.cli.evaluate import ERROR_COLUMNS
+    from moisst_ns.runs.history import ERROR_COLUMNS
 
     files = {}
     (out_dir / "convergence").mkdir(parents=True, exist_ok=True)
@@ -473,10 +472,11 @@ def write_report(
         The path of report.md.
 
     Raises:
-        moisst_ns.cli.export.RunError: a config of another method, no checkpoint, output inside the dataset, ...
+        moisst_ns.runs.RunError: a config of another method, no checkpoint, output inside the dataset, ...
     """
-    from moisst_ns.cli.evaluate import EvalError, find_history, read_history
-    from moisst_ns.cli.export import check_output_dir, dataset_of, load_run_config, open_run, resolve_config_path, xyz_rpy_delta
+    from moisst_ns.runs.folder import check_output_dir, dataset_of, load_run_config, open_run, resolve_config_path, xyz_rpy_delta
+    from moisst_ns.runs import RunError
+    from moisst_ns.runs.history import find_history, read_history
     from moisst_ns.rig.format import load_rig
 
     config_path = resolve_config_path(Path(config_path))
@@ -500,7 +500,7 @@ def write_report(
     try:
         history_path = find_history(config_path.parent)
         history = read_history(history_path)
-    except EvalError as err:
+    except RunError as err:
         history_path, history, history_problem = None, None, str(err)
     truth = None
     if calib.data.ground_truth is not None:
@@ -551,38 +551,3 @@ def write_report(
     report = out_dir / "report.md"
     report.write_text("\n".join(lines))
     return report
-
-
-@dataclass
-class ReportConfig:
-    """Diagnostics of a MOISST run: LiDAR on images (prior vs calibrated), renders, convergence plots, report.md."""
-
-    run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_DIR_OR_CONFIG")]
-    """The run folder (OUT/<method>/run) or its config.yml."""
-    output_dir: Annotated[Optional[Path], tyro.conf.arg(metavar="DIR")] = None
-    """Where the report goes (created); RUN/report when omitted. Never inside the dataset folder."""
-    frames_per_camera: int = 3
-    """Camera frames per camera for the prior / calibrated LiDAR overlays (spread over the sequence)."""
-    render: bool = True
-    """Render one frame per camera with the model at its calibrated pose (--no-render skips it)."""
-    render_width: int = 160
-    """Width of those renders, pixels (never upscaled; keeps the render cheap on CPU)."""
-
-
-def main() -> None:
-    """Console script ``moisst-report``."""
-    from moisst_ns.cli.export import RunError, fail, resolve_config_path
-    from moisst_ns.rig.format import RigFormatError
-
-    cfg = tyro.cli(ReportConfig)
-    try:
-        config_path = resolve_config_path(cfg.run)
-        out = cfg.output_dir if cfg.output_dir is not None else config_path.parent / "report"
-        report = write_report(config_path, out, frames_per_camera=cfg.frames_per_camera, render=cfg.render, render_width=cfg.render_width)
-    except (RunError, RigFormatError) as err:
-        fail("moisst-report", str(err))
-    print(f"wrote {report}")
-
-
-if __name__ == "__main__":
-    main()

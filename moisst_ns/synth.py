@@ -45,6 +45,10 @@ SKY_HORIZON = np.array([0.82, 0.87, 0.93])
 SUN = np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84])
 
 
+class SynthError(ValueError):
+    """A configuration or output folder moisst-synth refuses; the message is one line."""
+
+
 @dataclass
 class SynthConfig:
     """Generate a synthetic rig dataset (moisst-rig/1) with exact ground truth."""
@@ -789,10 +793,10 @@ def reference_trajectory_samples(config: SynthConfig, path: VehiclePath, truth: 
 def _prepare_out(config: SynthConfig) -> Path:
     out = Path(config.out)
     if out.exists() and not out.is_dir():
-        raise SystemExit(f"moisst-synth: error: {out} exists and is not a folder")
+        raise SynthError(f"{out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()):
         if not config.overwrite:
-            raise SystemExit(f"moisst-synth: error: {out} exists and is not empty; pass --overwrite to replace its dataset")
+            raise SynthError(f"{out} exists and is not empty; pass --overwrite to replace its dataset")
         for name in ("rig.json", "reference_poses.txt", "ground_truth.json"):
             (out / name).unlink(missing_ok=True)
         for name in ("images", "lidar"):
@@ -815,7 +819,7 @@ def _check_config(config: SynthConfig) -> None:
     if not config.lidar_noise >= 0:
         problems.append(f"--lidar-noise must be >= 0, got {config.lidar_noise}")
     if problems:
-        raise SystemExit(f"moisst-synth: error: {'; '.join(problems)}")
+        raise SynthError("; ".join(problems))
 
 
 def make_rig(config: SynthConfig) -> Path:
@@ -897,20 +901,3 @@ def make_rig(config: SynthConfig) -> Path:
         REFERENCE, {n: s.T_ref_sensor for n, s in truth.items()}, {n: s.time_offset for n, s in truth.items()}
     ).write(out / "ground_truth.json")
     return out
-
-
-def main() -> None:
-    """Console script ``moisst-synth``."""
-    import time
-
-    config = tyro.cli(SynthConfig)
-    start = time.perf_counter()
-    out = make_rig(config)
-    truth = json.loads((out / "ground_truth.json").read_text())["sensors"]
-    offsets = ", ".join(f"{n} {1000 * s['time_offset']:+.1f} ms" for n, s in truth.items() if n != REFERENCE)
-    print(f"moisst-synth: wrote {out} ({config.layout}, seed {config.seed}, {config.frames} frames/sensor, "
-          f"perturb {config.perturb}) in {time.perf_counter() - start:.1f} s; true offsets: {offsets}")
-
-
-if __name__ == "__main__":
-    main()

@@ -15,7 +15,9 @@ import torch
 from PIL import Image
 
 import moisst_ns.method_configs as method_configs
-import moisst_ns.report as report_module
+import moisst_ns.cli.report as report_module
+from moisst_ns import runs
+from moisst_ns.runs import folder
 from moisst_ns.cli import evaluate, export
 from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
 from moisst_ns.report import draw_points, lidar_points_world, nearest_lidar_frames, project_points, sensor_pose, write_report
@@ -70,7 +72,7 @@ def run(tiny_rig, tmp_path_factory):
     before = tree_hash(rig)
     config_path = calibrate(rig, root / "calib", 12)
     exported = export.run_export(export.ExportConfig(load_config=config_path, output_dir=root / "exported"))
-    _, pipeline, step, _ = export.open_run(config_path)
+    _, pipeline, step, _ = folder.open_run(config_path)
     code, _, err = run_main(report_module, [config_path.parent])  # default output: RUN/report
     assert code == 0, err
     return {"rig": rig, "before": before, "config": config_path, "out": exported, "pipeline": pipeline, "step": step,
@@ -184,8 +186,8 @@ def test_export_cli_errors_are_one_line(run, tmp_path):
         assert len(lines) == 1 and lines[0].startswith("moisst-export: error: ") and expected in lines[0], (expected, err)
         if output_dir != as_file:
             assert not output_dir.exists()
-    with pytest.raises(export.RunError, match="not MoisstModel"):
-        export.load_run_config(other_method / "config.yml")
+    with pytest.raises(runs.RunError, match="not MoisstModel"):
+        folder.load_run_config(other_method / "config.yml")
     assert not (run["rig"] / "export").exists()
     # the console script itself
     result = subprocess.run([str(BIN / "moisst-export"), "--load-config", str(tmp_path / "nope.yml"), "--output-dir", str(tmp_path / "o")],
@@ -402,7 +404,7 @@ def test_report_with_a_pipeline_in_memory_keeps_its_mode(run, tmp_path):
 
 
 def test_report_refuses_an_output_inside_the_dataset(run):
-    with pytest.raises(export.RunError, match="inside the dataset"):
+    with pytest.raises(runs.RunError, match="inside the dataset"):
         write_report(run["config"], run["rig"] / "report")
     assert not (run["rig"] / "report").exists()
 

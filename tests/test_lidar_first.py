@@ -16,18 +16,8 @@ from moisst_ns.cli.lidar_calibrate import LidarCalibrateConfig, run_lidar_calibr
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import load_calibration, load_lidar_scan, load_rig
 from moisst_ns.rig.geometry import calibrated_extrinsic, interpolate_trajectory, make_pose
-from moisst_ns.stages.lidar_first import (
-    Correspondences,
-    Extrinsic,
-    LidarFirstConfig,
-    LidarFirstError,
-    ScanSet,
-    Trajectory,
-    calibrate_lidars,
-    consistency_residuals,
-    place_points,
-    placement_jacobian,
-)
+from moisst_ns.stages.lidar_first import Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, calibrate_lidars, consistency_residuals
+from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points, placement_jacobian
 from moisst_ns.stages.observability import PARAMETERS, analyse_observability
 from moisst_ns.synth import SynthConfig, build_scene, make_rig
 from helpers import tree_hash
@@ -304,7 +294,7 @@ def test_calibrate_runs_the_stage_first_and_holds_the_lidar(tiny_rigs, tmp_path)
     there (the NeRF's estimate equals the stage's exactly) and records the stage's iterations at negative steps of
     the history; ``--no-lidar-first`` does none of it."""
     from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
-    from moisst_ns.cli.evaluate import read_history
+    from moisst_ns.runs.history import read_history
 
     dataset = tiny_rigs["raw"]
     before = tree_hash(dataset)

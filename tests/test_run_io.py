@@ -106,7 +106,7 @@ def test_same_seed_same_calibration(short_run, tmp_path):
 
 
 def test_still_moving_flags_a_drifting_sensor(tmp_path):
-    from moisst_ns.cli.calibrate import still_moving
+    from moisst_ns.runs.history import still_moving
 
     lines = ["step,sensor,x,y,z,roll,pitch,yaw,delta_ms"]
     for step in range(10):
@@ -137,7 +137,7 @@ def test_resume_restores_calibration_and_optimiser_state(tmp_path):
             ckpt.unlink()
     saved = torch.load(ckpt_dir / "step-000000008.ckpt", map_location="cpu")  # also checks torch>=2.6 loading
     # set up the resumed trainer and check the state it starts from
-    from moisst_ns.cli.calibrate import seed_everything
+    from moisst_ns.pipeline import seed_everything
 
     config = moisst_trainer_config("moisst-lite", 16)
     config.pipeline.datamanager.data = rig

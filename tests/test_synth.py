@@ -15,6 +15,7 @@ from PIL import Image
 from moisst_ns.rig.format import load_calibration, load_lidar_scan, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, sensor_pose
 from moisst_ns.synth import (
+    SynthError,
     PERIOD,
     SynthConfig,
     build_scene,
@@ -244,7 +245,7 @@ def test_refuses_non_empty_out_unless_overwrite(tmp_path):
     out = tmp_path / "ds"
     out.mkdir()
     (out / "keep.txt").write_text("x")
-    with pytest.raises(SystemExit, match="not empty"):
+    with pytest.raises(SynthError, match="not empty"):
         make_rig(tiny(out, frames=2, lidar=False))
     make_rig(tiny(out, frames=3, lidar=False, overwrite=True))
     assert (out / "keep.txt").read_text() == "x"

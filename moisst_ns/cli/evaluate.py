@@ -12,28 +12,16 @@ Errors are one line, ``moisst-eval: error: ...``, exit status 2. Nothing here im
 
 from __future__ import annotations
 
-import csv
 import json
-import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Dict, List, Literal, Optional
+from typing import Annotated, Dict, Literal, Optional
 
-import numpy as np
 import tyro
 
-ESTIMATE_COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw", "delta_ms")
-"""Estimate columns of calibration_history.csv (metres, degrees, milliseconds)."""
-ERROR_COLUMNS = ("err_translation_cm", "err_rotation_deg", "err_time_ms")
-"""Error columns of calibration_history.csv (empty when the dataset has no ground truth)."""
-UNITS = {"x": "m", "y": "m", "z": "m", "roll": "deg", "pitch": "deg", "yaw": "deg", "delta_ms": "ms",
-         "err_translation_cm": "cm", "err_rotation_deg": "deg", "err_time_ms": "ms"}
-HISTORY_FILE = "calibration_history.csv"
-
-
-class EvalError(ValueError):
-    """Bad input to moisst-eval; the message is one line."""
+from moisst_ns.runs import RunError
+from moisst_ns.runs.history import find_history, format_error_table, format_stats_table, history_stats, read_history
 
 
 @dataclass
@@ -71,7 +59,7 @@ def compare_files(calibration: Path, ground_truth: Path) -> Dict[str, Dict[str, 
         ``{sensor: {"translation_cm", "rotation_deg", "time_ms"}}`` for the non-reference sensors in both.
 
     Raises:
-        EvalError: unreadable / invalid file (``RigFormatError`` message), other reference, no common sensor.
+        RunError: unreadable / invalid file (``RigFormatError`` message), other reference, no common sensor.
     """
     from moisst_ns.rig.calibration import calibration_report_errors
     from moisst_ns.rig.format import RigFormatError, load_calibration
@@ -79,142 +67,28 @@ def compare_files(calibration: Path, ground_truth: Path) -> Dict[str, Dict[str, 
     try:
         estimate, truth = load_calibration(calibration), load_calibration(ground_truth)
     except RigFormatError as err:
-        raise EvalError(str(err)) from None
+        raise RunError(str(err)) from None
     if estimate.reference_sensor != truth.reference_sensor:
-        raise EvalError(f"{calibration}: reference_sensor: {estimate.reference_sensor!r}, but {ground_truth} has {truth.reference_sensor!r}")
+        raise RunError(f"{calibration}: reference_sensor: {estimate.reference_sensor!r}, but {ground_truth} has {truth.reference_sensor!r}")
     errors = {k: v for k, v in calibration_report_errors(estimate, truth).items() if k != truth.reference_sensor}
     if not errors:
-        raise EvalError(f"{calibration}: sensors: no non-reference sensor in common with {ground_truth}")
+        raise RunError(f"{calibration}: sensors: no non-reference sensor in common with {ground_truth}")
     return errors
-
-
-# --- history --------------------------------------------------------------------------------------------------
-
-
-def find_history(path: Path) -> Path:
-    """calibration_history.csv of a run folder, the CSV itself, or the single run under a moisst-calibrate OUT.
-
-    Args:
-        path: ``RUN_DIR``, ``RUN_DIR/calibration_history.csv`` or moisst-calibrate's ``OUT``.
-
-    Returns:
-        The CSV path.
-
-    Raises:
-        EvalError: none found (or several runs under OUT).
-    """
-    path = Path(path)
-    if path.is_file():
-        return path
-    if (path / HISTORY_FILE).is_file():
-        return path / HISTORY_FILE
-    if path.is_dir():
-        found = sorted(path.glob(f"*/run/{HISTORY_FILE}"))
-        if len(found) == 1:
-            return found[0]
-        if len(found) > 1:
-            raise EvalError(f"{path}: several runs ({', '.join(str(f.parent) for f in found)}); pass one run folder")
-    raise EvalError(f"{path}: {HISTORY_FILE} not found (pass a run folder, e.g. OUT/moisst-lite/run)")
-
-
-def read_history(path: Path) -> Dict[str, Dict[str, np.ndarray]]:
-    """Read calibration_history.csv into per-sensor columns.
-
-    Args:
-        path: the CSV (``step,sensor,x,...,delta_ms[,err_translation_cm,err_rotation_deg,err_time_ms]``).
-
-    Returns:
-        ``{sensor: {"step": (R,) int, column: (R,) float}}`` in file order; empty error cells are NaN, and an
-        error column absent from the header is absent from the result.
-
-    Raises:
-        EvalError: missing columns, non-numeric values, no rows.
-    """
-    out: Dict[str, Dict[str, List[float]]] = {}
-    with Path(path).open(newline="") as handle:
-        reader = csv.DictReader(handle)
-        header = reader.fieldnames or []
-        missing = [c for c in ("step", "sensor") + ESTIMATE_COLUMNS if c not in header]
-        if missing:
-            raise EvalError(f"{path}: header: missing column(s) {', '.join(missing)}")
-        columns = ("step",) + ESTIMATE_COLUMNS + tuple(c for c in ERROR_COLUMNS + ("elapsed_s",) if c in header)
-        for lineno, row in enumerate(reader, start=2):
-            entry = out.setdefault(row["sensor"], {c: [] for c in columns})
-            for c in columns:
-                cell = (row.get(c) or "").strip()
-                try:
-                    value = float(cell) if cell else math.nan
-                except ValueError:
-                    raise EvalError(f"{path}: line {lineno}: column {c}: not a number {cell!r}") from None
-                if c not in ERROR_COLUMNS + ("elapsed_s",) and not cell:
-                    raise EvalError(f"{path}: line {lineno}: column {c}: empty")
-                entry[c].append(value)
-    if not out:
-        raise EvalError(f"{path}: no rows (the run logged nothing yet)")
-    return {s: {c: np.asarray(v, dtype=np.int64 if c == "step" else np.float64) for c, v in cols.items()} for s, cols in out.items()}
-
-
-def history_stats(history: Dict[str, Dict[str, np.ndarray]], last: int, columns: str = "all") -> Dict[str, dict]:
-    """Mean and population standard deviation of each sensor's last ``last`` rows.
-
-    Args:
-        history: ``read_history`` output.
-        last: number of trailing rows per sensor (all when fewer).
-        columns: ``all`` (errors where logged, and estimates), ``errors`` or ``estimates``.
-
-    Returns:
-        ``{sensor: {"rows", "first_step", "last_step", "mean": {column: v}, "std": {column: v}}}``.
-
-    Raises:
-        EvalError: ``last < 1``, or errors requested but not logged (no ground truth) for a sensor.
-    """
-    if last < 1:
-        raise EvalError(f"--last: must be >= 1, got {last}")
-    out = {}
-    for name, cols in history.items():
-        tail = {c: v[-last:] for c, v in cols.items()}
-        logged = [c for c in ERROR_COLUMNS if c in tail and not np.isnan(tail[c]).any()]
-        if columns == "errors" and len(logged) != len(ERROR_COLUMNS):
-            raise EvalError(f"sensor {name}: no error columns in the history's last {last} rows (the dataset has no "
-                            "ground_truth.json?); use --columns estimates")
-        chosen = (logged if columns != "estimates" else []) + (list(ESTIMATE_COLUMNS) if columns != "errors" else [])
-        out[name] = {
-            "rows": int(len(tail["step"])),
-            "first_step": int(tail["step"][0]),
-            "last_step": int(tail["step"][-1]),
-            "mean": {c: float(np.mean(tail[c])) for c in chosen},
-            "std": {c: float(np.std(tail[c])) for c in chosen},
-        }
-    return out
 
 
 # --- output ---------------------------------------------------------------------------------------------------
 
 
-def format_stats_table(stats: Dict[str, dict], last: int) -> str:
-    """Fixed-width table of ``history_stats``: one line per sensor and column, mean and std."""
-    lines = [f"mean and std (population) over each sensor's last {last} logged rows:",
-             f"  {'sensor':<18}{'quantity':<24}{'mean':>14}{'std':>14}{'rows':>6}{'steps':>14}"]
-    for name, s in stats.items():
-        for c in s["mean"]:
-            label = f"{c} ({UNITS[c]})"
-            steps = f"{s['first_step']}-{s['last_step']}"
-            lines.append(f"  {name:<18}{label:<24}{s['mean'][c]:>14.6g}{s['std'][c]:>14.6g}{s['rows']:>6}{steps:>14}")
-    return "\n".join(lines)
-
-
 def run_evaluate(cfg: EvaluateConfig) -> str:
-    """The text moisst-eval prints for ``cfg``. Raises ``EvalError`` on bad input."""
-    from moisst_ns.cli.calibrate import format_error_table
-
+    """The text moisst-eval prints for ``cfg``. Raises ``RunError`` on bad input."""
     if cfg.history is not None:
         if cfg.calibration is not None or cfg.ground_truth is not None:
-            raise EvalError("--history takes no CALIBRATION.json / GROUND_TRUTH.json")
+            raise RunError("--history takes no CALIBRATION.json / GROUND_TRUTH.json")
         path = find_history(cfg.history)
         stats = history_stats(read_history(path), cfg.last, cfg.columns)
         return json.dumps(stats, indent=1) if cfg.as_json else format_stats_table(stats, cfg.last)
     if cfg.calibration is None or cfg.ground_truth is None:
-        raise EvalError("expected CALIBRATION.json GROUND_TRUTH.json, or --history RUN_DIR")
+        raise RunError("expected CALIBRATION.json GROUND_TRUTH.json, or --history RUN_DIR")
     errors = compare_files(cfg.calibration, cfg.ground_truth)
     if cfg.as_json:
         return json.dumps(errors, indent=1)
@@ -226,7 +100,7 @@ def main() -> None:
     cfg = tyro.cli(EvaluateConfig)
     try:
         text = run_evaluate(cfg)
-    except (EvalError, OSError) as err:
+    except (RunError, OSError) as err:
         message = str(err).replace("\r", "\\r").replace("\n", "\\n")
         print(f"moisst-eval: error: {message}", file=sys.stderr)
         raise SystemExit(2)

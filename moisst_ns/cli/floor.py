@@ -20,7 +20,11 @@ from typing import Dict, List, Literal, Optional
 
 import tyro
 
-from moisst_ns.cli.calibrate import check_output_dir, fail, format_error_table, seed_everything
+from moisst_ns.cli.common import fail
+from moisst_ns.pipeline import seed_everything
+from moisst_ns.runs import RunError
+from moisst_ns.runs.folder import check_output_dir
+from moisst_ns.runs.history import format_error_table
 
 CALIBRATION_GROUPS = ("calibration_rotation", "calibration_translation", "calibration_time")
 
@@ -72,13 +76,16 @@ def run_floor(cfg: FloorConfig) -> Dict[str, Dict[str, float]]:
     try:
         rig = load_rig(cfg.dataset)
     except RigFormatError as err:
-        fail(str(err), "moisst-floor")
+        fail("moisst-floor", str(err))
     if not (rig.root / "ground_truth.json").is_file():
-        fail(f"{rig.root / 'ground_truth.json'}: not found: the floor is measured against the true calibration", "moisst-floor")
+        fail("moisst-floor", f"{rig.root / 'ground_truth.json'}: not found: the floor is measured against the true calibration")
     if cfg.register_steps < 1 or cfg.log_every < 1 or cfg.average_last < 1:
-        fail("--register-steps, --log-every and --average-last must be >= 1", "moisst-floor")
+        fail("moisst-floor", "--register-steps, --log-every and --average-last must be >= 1")
     out = cfg.output_dir
-    check_output_dir(rig.root, out, "moisst-floor")
+    try:
+        check_output_dir(out, rig.root, create=True)
+    except RunError as err:
+        fail("moisst-floor", err)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
 

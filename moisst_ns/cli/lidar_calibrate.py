@@ -16,6 +16,11 @@ from typing import Optional, Tuple
 
 import tyro
 
+from moisst_ns.cli.common import fail
+from moisst_ns.runs import RunError
+from moisst_ns.runs.folder import check_output_dir
+from moisst_ns.runs.history import format_error_table
+
 
 @dataclass
 class LidarCalibrateConfig:
@@ -41,7 +46,6 @@ def run_lidar_calibration(cfg: LidarCalibrateConfig) -> dict:
     """Run the stage and write its outputs; returns the stage summary (``lidar_first.json``)."""
     import torch
 
-    from moisst_ns.cli.calibrate import check_output_dir, fail, format_error_table
     from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration, load_rig
     from moisst_ns.stages.lidar_first import LidarFirstConfig, LidarFirstError, calibrate_lidars
     from moisst_ns.stages.lidar_report import observability_lines, write_stage_outputs
@@ -51,9 +55,9 @@ def run_lidar_calibration(cfg: LidarCalibrateConfig) -> dict:
         rig = load_rig(cfg.dataset)
         truth_file = rig.root / "ground_truth.json"
         truth = load_calibration(truth_file) if truth_file.is_file() else None
-    except RigFormatError as err:
-        fail(str(err), prog)
-    check_output_dir(rig.root, cfg.output_dir, prog)
+        check_output_dir(cfg.output_dir, rig.root, create=True)
+    except (RigFormatError, RunError) as err:
+        fail(prog, err)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     config = LidarFirstConfig(max_time_offset=cfg.max_time_offset, seed=cfg.seed, points_per_scan=cfg.points_per_scan)
@@ -61,7 +65,7 @@ def run_lidar_calibration(cfg: LidarCalibrateConfig) -> dict:
     try:
         result = calibrate_lidars(rig, config, cfg.sensors or None)
     except LidarFirstError as err:
-        fail(str(err), prog)
+        fail(prog, err)
     prior = Calibration.from_rig(rig)
     summary = write_stage_outputs(result, config, prior, truth, cfg.output_dir)
     print(f"\nwrote {cfg.output_dir / 'calibration.json'}  ({time.perf_counter() - start:.1f} s)")

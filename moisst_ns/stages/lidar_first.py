@@ -23,16 +23,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import open3d as o3d
-import roma
-import torch
 from jaxtyping import Float, Int
 from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
+from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, Trajectory, place_points, placement_jacobian, trajectory_at
 from moisst_ns.stages.observability import Observability, analyse_observability
 
 
@@ -93,151 +92,6 @@ class LidarFirstConfig:
     """Estimate ``ref_T_L`` (off: held at the prior, as in the paper's temporal-only Table II)."""
     estimate_time_offset: bool = True
     """Estimate ``delta_L`` (off: held at the prior, as in the paper's spatial-only Table I)."""
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Placement (paper eq. 1-2 per point) and its Jacobian
-
-
-@dataclass
-class Trajectory:
-    """The reference trajectory with each segment's relative rotation precomputed (eq. 1, vectorised)."""
-
-    times: Float[np.ndarray, "num_poses"]
-    """Sample times, seconds since ``t0`` (strictly increasing)."""
-    rotations: Float[np.ndarray, "num_poses 3 3"]
-    """``world_R_ref``."""
-    translations: Float[np.ndarray, "num_poses 3"]
-    """``world_t_ref``, metres."""
-    segment_rotvecs: Float[np.ndarray, "num_segments 3"] = field(init=False)
-    """``Log(R_k^T R_{k+1})``, radians."""
-
-    def __post_init__(self):
-        rel = torch.from_numpy(np.einsum("kji,kjl->kil", self.rotations[:-1], self.rotations[1:]))
-        self.segment_rotvecs = roma.rotmat_to_rotvec(rel).numpy()
-
-    @classmethod
-    def from_rig(cls, rig: Rig) -> "Trajectory":
-        quats = torch.from_numpy(np.asarray(rig.trajectory_quats_xyzw, dtype=np.float64))
-        return cls(rig.trajectory_stamps - rig.trajectory_stamps[0], roma.unitquat_to_rotmat(roma.quat_normalize(quats)).numpy(),
-                   np.asarray(rig.trajectory_positions, dtype=np.float64))
-
-    def segments(self, t: Float[np.ndarray, "num"]) -> Tuple[Int[np.ndarray, "num"], Float[np.ndarray, "num"]]:
-        """Segment index (clamped to the end segments: extrapolation) and interpolation factor ``a`` of times ``t``."""
-        seg = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)
-        return seg, (t - self.times[seg]) / (self.times[seg + 1] - self.times[seg])
-
-    def pose_and_rates(self, t: Float[np.ndarray, "num"]):
-        """``world_R_ref(t)``, ``world_t_ref(t)`` (eq. 1), body angular rate (rad/s) and velocity (m/s) at ``t``."""
-        seg, alpha = self.segments(t)
-        step = self.segment_rotvecs[seg]
-        rot = self.rotations[seg] @ roma.rotvec_to_rotmat(torch.from_numpy(alpha[:, None] * step)).numpy()
-        dt = (self.times[seg + 1] - self.times[seg])[:, None]
-        delta_p = self.translations[seg + 1] - self.translations[seg]
-        return rot, self.translations[seg] + alpha[:, None] * delta_p, step / dt, delta_p / dt
-
-
-@dataclass
-class PointTimes:
-    """Per-point times kept as indices into their distinct values: a sweep fires a few thousand distinct times for
-    tens of thousands of points (a compensated scan one), so eq. 1 is evaluated once per distinct time."""
-
-    unique: Float[np.ndarray, "num_unique"]
-    index: Int[np.ndarray, "num"]
-
-    @classmethod
-    def of(cls, times: Float[np.ndarray, "num"]) -> "PointTimes":
-        unique, index = np.unique(times, return_inverse=True)
-        return cls(unique, index.reshape(-1))
-
-    def __getitem__(self, selection) -> "PointTimes":
-        return PointTimes(self.unique, self.index[selection])
-
-    def __len__(self) -> int:
-        return len(self.index)
-
-
-def trajectory_at(traj: Trajectory, times, offset: float):
-    """``traj.pose_and_rates(times + offset)`` for an array of times or ``PointTimes``."""
-    if isinstance(times, PointTimes):
-        return tuple(a[times.index] for a in traj.pose_and_rates(times.unique + offset))
-    return traj.pose_and_rates(np.asarray(times) + offset)
-
-
-def right_jacobian(rotvec: Float[np.ndarray, "3"]) -> Float[np.ndarray, "3 3"]:
-    """Right Jacobian of SO(3)'s exponential: ``Exp(w + e) ~ Exp(w) Exp(J_r(w) e)``."""
-    theta = float(np.linalg.norm(rotvec))
-    k = np.array([[0.0, -rotvec[2], rotvec[1]], [rotvec[2], 0.0, -rotvec[0]], [-rotvec[1], rotvec[0], 0.0]])
-    if theta < 1e-6:
-        return np.eye(3) - 0.5 * k + k @ k / 6.0
-    return np.eye(3) - (1 - np.cos(theta)) / theta**2 * k + (theta - np.sin(theta)) / theta**3 * (k @ k)
-
-
-@dataclass
-class Extrinsic:
-    """A LiDAR's calibration: ``ref_T_L`` as rotation + translation (metres) and ``delta_L`` (seconds)."""
-
-    rotation: Float[np.ndarray, "3 3"]
-    translation: Float[np.ndarray, "3"]
-    time_offset: float
-
-    def updated(self, increment: Float[np.ndarray, "7"]) -> "Extrinsic":
-        """``R Exp(w)``, ``t + v``, ``delta + d`` for ``increment = (w, v, d)``."""
-        rot = self.rotation @ roma.rotvec_to_rotmat(torch.from_numpy(np.asarray(increment[:3], dtype=np.float64))).numpy()
-        return Extrinsic(rot, self.translation + increment[3:6], self.time_offset + float(increment[6]))
-
-    def matrix(self) -> Float[np.ndarray, "4 4"]:
-        pose = np.eye(4)
-        pose[:3, :3], pose[:3, 3] = self.rotation, self.translation
-        return pose
-
-
-def place_points(traj: Trajectory, ext: Extrinsic, points: Float[np.ndarray, "num 3"], times: Union[Float[np.ndarray, "num"], PointTimes]) -> Float[np.ndarray, "num 3"]:
-    """Paper eq. 1-2 per point: ``x = T_r(t + delta) @ ref_T_L @ p``.
-
-    Args:
-        traj: the reference trajectory.
-        ext: the LiDAR's calibration.
-        points: points in the LiDAR frame, metres.
-        times: each point's own-clock firing time, seconds since the trajectory's ``t0``.
-
-    Returns:
-        World points, metres.
-    """
-    rot, trans, _, _ = trajectory_at(traj, times, ext.time_offset)
-    ref = points @ ext.rotation.T + ext.translation
-    return np.einsum("nij,nj->ni", rot, ref) + trans
-
-
-def placement_jacobian(
-    traj: Trajectory, ext: Extrinsic, increment: Float[np.ndarray, "7"], points: Float[np.ndarray, "num 3"],
-    times: Union[Float[np.ndarray, "num"], PointTimes], normals: Float[np.ndarray, "num 3"],
-) -> Tuple[Float[np.ndarray, "num"], Float[np.ndarray, "num 7"]]:
-    """``n . x`` and its derivative with respect to ``increment = (w, v, d)`` of ``ext.updated(increment)``.
-
-    With ``R_L = R_c Exp(w)``, ``q = R_L p + t_L``, ``x = R_r q + p_r`` at ``t + delta``:
-    ``dx/dv = R_r``, ``dx/dw = -R_r R_L [p]x J_r(w)``, ``dx/dd = R_r [omega]x q + velocity`` (omega the body rate of
-    the trajectory segment, eq. 1's SLERP).
-
-    Args:
-        traj, ext: trajectory and the calibration being linearised around.
-        increment: the current increment.
-        points, times: as in ``place_points``.
-        normals: the direction each point is projected on (world frame).
-
-    Returns:
-        (``n . x`` per point, metres; its Jacobian, metres per radian / metre / second).
-    """
-    cur = ext.updated(increment)
-    rot, trans, omega, vel = trajectory_at(traj, times, cur.time_offset)
-    ref = points @ cur.rotation.T + cur.translation
-    x = np.einsum("nij,nj->ni", rot, ref) + trans
-    u = np.einsum("nji,nj->ni", rot, normals)  # R_r^T n
-    jac = np.empty((len(points), 7))
-    jac[:, :3] = np.cross(points, u @ cur.rotation) @ right_jacobian(np.asarray(increment[:3], dtype=np.float64))
-    jac[:, 3:6] = u
-    jac[:, 6] = np.einsum("ni,ni->n", u, np.cross(omega, ref)) + np.einsum("ni,ni->n", normals, vel)
-    return np.einsum("ni,ni->n", normals, x), jac
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -1,0 +1,23 @@
+"""``moisst-bench``: the paper's protocol on synthetic rigs (``moisst_ns.bench``)."""
+
+from __future__ import annotations
+
+import tyro
+
+from moisst_ns.bench import BenchConfig, BenchError, run_bench
+from moisst_ns.cli.common import fail
+
+
+def main() -> None:
+    """Console script ``moisst-bench``."""
+    cfg = tyro.cli(BenchConfig)
+    if cfg.quick and cfg.full:
+        fail("moisst-bench", "--quick and --full are exclusive")
+    try:
+        run_bench(cfg)
+    except BenchError as err:
+        fail("moisst-bench", err)
+
+
+if __name__ == "__main__":
+    main()

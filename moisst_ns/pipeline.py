@@ -1,0 +1,241 @@
+"""The calibration pipeline behind ``moisst-calibrate``: LiDAR first, then the NeRF; writes ``OUT/calibration.json``.
+
+Runs the LiDAR-first stage (``moisst_ns.stages.lidar_first``) when the rig has a LiDAR, then nerfstudio training of ``moisst`` or ``moisst-lite`` in-process and writes the calibration in the rig
+format's ground-truth schema (metres and seconds in the dataset's own frame), plus the nerfstudio run
+(config.yml, checkpoint) under ``OUT/<method>/run``. Nothing is written into DATASET. Bad input raises
+``CalibrationError`` (one line); ``moisst_ns.cli.calibrate`` turns it into a message and exit status 2.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import tyro
+
+from moisst_ns.runs import RunError
+from moisst_ns.runs.folder import check_output_dir
+from moisst_ns.runs.history import HISTORY_FILE, append_history, format_error_table, stage_history_rows, still_moving
+
+
+@dataclass
+class CalibrateConfig:
+    """Calibrate the extrinsics and time offsets of a rig (MOISST)."""
+
+    dataset: tyro.conf.Positional[Path]
+    """Dataset folder holding rig.json (moisst-rig/1)."""
+    output_dir: Path = Path("outputs/calibration")
+    """Where calibration.json and the nerfstudio run go (created; must not be a file)."""
+    method: Literal["moisst", "moisst-lite"] = "moisst-lite"
+    """``moisst`` (paper settings, for a GPU) or ``moisst-lite`` (2 CPU cores)."""
+    max_num_iterations: Optional[int] = None
+    """Training steps (schedules scale with it); the method's default when omitted."""
+    seed: int = 42
+    """Random seed (sampling, initialisation)."""
+    viewer: bool = False
+    """Also serve nerfstudio's viewer during training (on 127.0.0.1 unless --viewer-host)."""
+    viewer_host: str = "127.0.0.1"
+    """Host the viewer listens on; reach it remotely through an ssh port forward rather than 0.0.0.0."""
+    depth_loss: bool = True
+    """LiDAR depth loss L_D (paper eq. 7); --no-depth-loss for the Table VII ablation."""
+    dssim_loss: bool = True
+    """DSSIM patch loss (eq. 13; active with --patch-size > 1)."""
+    depth_smoothness_loss: bool = True
+    """Depth smoothness patch loss (eq. 13; active with --patch-size > 1)."""
+    patch_size: Optional[int] = None
+    """Sample camera pixels as P x P patches (needed by the patch losses); the method's default when omitted."""
+    lidar_rays: Optional[int] = None
+    """LiDAR points per step (0: cameras only); the method's default when omitted."""
+    rays: Optional[int] = None
+    """Camera pixels per step; the method's default when omitted."""
+    extrinsics: bool = True
+    """Optimise the extrinsics; --no-extrinsics keeps them at the priors (paper Tables II and V: temporal only)."""
+    time_offsets: bool = True
+    """Optimise the time offsets; --no-time-offsets keeps them at the priors (paper Tables I and V: spatial only)."""
+    report: bool = True
+    """Write diagnostics to OUT/report: LiDAR points over the images with prior vs calibrated extrinsics, the
+    same over a model render, convergence plots, report.md (same as ``moisst-report``)."""
+    max_time_offset: Optional[float] = None
+    """Bound (seconds) on how far a sensor's time offset may move from its prior (default 0.3 s); a sensor that
+    hits it is a runaway and shows in the still-moving / error report instead of going absurd."""
+    resume: bool = False
+    """Continue the run in --output-dir from its latest checkpoint (calibration, scene and optimiser state)."""
+    save_every: Optional[int] = None
+    """Checkpoint every N steps and keep every checkpoint (default: the method's, latest only)."""
+    threads: Optional[int] = None
+    """torch CPU threads (pin for bit-repeatable runs); torch's default when omitted."""
+    depth_loss_per_m2: Optional[float] = None
+    """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
+    method's normalised-depth loss (the paper's) when omitted."""
+    lidar_first: bool = True
+    """Calibrate every LiDAR from its own scans before the NeRF (``moisst-lidar-calibrate``, into OUT/lidar_first);
+    the NeRF starts from that estimate, holds the LiDARs there and lets their depth shape the scene.
+    --no-lidar-first: the paper's pure joint schedule (for the ablation tables)."""
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python, numpy and torch as ``ns-train`` does (its train loop, which we bypass, would)."""
+    import random
+
+    import numpy as np
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+class CalibrationError(ValueError):
+    """A calibration that cannot start or had to stop; the message is one line naming file/option and problem."""
+
+
+def run_calibration(cfg: CalibrateConfig) -> Path:
+    """Train, then write ``calibration.json``; returns the run's config.yml path."""
+    import torch
+
+    from moisst_ns.method_configs import moisst_trainer_config
+    from moisst_ns.rig.calibration import calibration_report_errors
+    from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration, load_rig
+
+    try:
+        rig = load_rig(cfg.dataset)
+        out = cfg.output_dir
+        check_output_dir(out, rig.root, create=True)
+    except (RigFormatError, RunError) as err:
+        raise CalibrationError(str(err)) from None
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+
+    config = moisst_trainer_config(cfg.method, cfg.max_num_iterations)
+    config.pipeline.datamanager.data = rig.root
+    config.pipeline.datamanager.dataparser.data = rig.root
+    config.output_dir = out
+    config.experiment_name = "."
+    config.timestamp = "run"
+    config.machine.seed = cfg.seed
+    model = config.pipeline.model
+    if cfg.depth_loss_per_m2 is not None:
+        model.depth_loss_units, model.depth_loss_mult = "metric", cfg.depth_loss_per_m2
+    if not cfg.depth_loss:
+        model.depth_loss_mult = 0.0
+    if not cfg.dssim_loss:
+        model.dssim_loss_mult = 0.0
+    if not cfg.depth_smoothness_loss:
+        model.depth_smoothness_mult = 0.0
+    if cfg.max_time_offset is not None:
+        model.camera_optimizer.max_time_offset = cfg.max_time_offset
+    if cfg.patch_size is not None:
+        config.pipeline.datamanager.patch_size = cfg.patch_size
+    if cfg.lidar_rays is not None:
+        config.pipeline.datamanager.lidar_rays_per_batch = cfg.lidar_rays
+    if cfg.rays is not None:
+        config.pipeline.datamanager.train_num_rays_per_batch = cfg.rays
+        config.pipeline.datamanager.eval_num_rays_per_batch = cfg.rays
+    if not cfg.extrinsics and not cfg.time_offsets:
+        raise CalibrationError("--no-extrinsics and --no-time-offsets together leave nothing to calibrate")
+    model.camera_optimizer.optimize_extrinsics = cfg.extrinsics
+    model.camera_optimizer.optimize_time_offsets = cfg.time_offsets
+    config.viewer.quit_on_train_completion = True
+    config.viewer.websocket_host = cfg.viewer_host
+    config.vis = "viewer+tensorboard" if cfg.viewer else "tensorboard"
+    if cfg.save_every:
+        config.steps_per_save = cfg.save_every
+        config.save_only_latest_checkpoint = False
+    checkpoints = config.get_checkpoint_dir()
+    if cfg.resume:
+        if not checkpoints.is_dir() or not any(checkpoints.glob("step-*.ckpt")):
+            raise CalibrationError(f"{checkpoints}: --resume: no checkpoint to resume from")
+        config.load_dir = checkpoints
+    config.save_config()
+
+    truth_file = rig.root / "ground_truth.json"
+    truth = load_calibration(truth_file) if truth_file.is_file() else None
+    prior = Calibration.from_rig(rig)
+    stage = run_lidar_first(cfg, rig, prior, truth, out) if cfg.lidar_first else None
+    if stage is not None:
+        config.pipeline.datamanager.dataparser.prior_calibration = out / "lidar_first" / "calibration.json"
+        model.camera_optimizer.frozen_sensors = tuple(stage["sensors"])
+        model.registration_sensors = "cameras"  # the calibrated LiDARs shape the scene while the cameras register
+        config.save_config()
+        if not cfg.resume:
+            history = config.get_base_dir() / HISTORY_FILE
+            history.unlink(missing_ok=True)
+            for step, rows in stage_history_rows(stage, truth):
+                append_history(history, step, rows)
+
+    seed_everything(cfg.seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    start = time.time()
+    try:
+        trainer.train()
+    except FloatingPointError as err:
+        raise CalibrationError(str(err)) from None
+    wall = time.time() - start
+
+    optimizer = trainer.pipeline.model.camera_optimizer
+    estimate = optimizer.rig.estimate()
+    estimate.write(out / "calibration.json")
+    summary = {"method": cfg.method, "iterations": config.max_num_iterations, "wall_time_s": wall, "seed": cfg.seed}
+    if stage is not None:
+        summary["lidar_first"] = {n: {k: e[k] for k in ("wall_s", "weak", "change_from_prior") + (("errors_after",) if truth else ())}
+                                  for n, e in stage["sensors"].items()}
+    print(f"\nwrote {out / 'calibration.json'}  ({config.max_num_iterations} steps, {wall:.0f} s)")
+    if truth is not None:
+        before = calibration_report_errors(prior, truth)
+        after = calibration_report_errors(estimate, truth)
+        skip = {truth.reference_sensor}
+        before = {k: v for k, v in before.items() if k not in skip}
+        after = {k: v for k, v in after.items() if k not in skip}
+        print(format_error_table("errors of the priors (before):", before))
+        print(format_error_table("errors after calibration:", after))
+        summary["errors_before"], summary["errors_after"] = before, after
+    bounds = optimizer.config
+    for i, name in enumerate(optimizer.rig.data.sensor_names):
+        hit = []
+        if bounds.max_time_offset > 0 and abs(float(optimizer.rig.time_offset[i])) >= 0.999 * bounds.max_time_offset:
+            hit.append(f"time offset (±{bounds.max_time_offset * 1000:.0f} ms)")
+        if bounds.max_translation > 0 and float(optimizer.rig.translation[i].abs().max()) >= 0.999 * bounds.max_translation:
+            hit.append(f"translation (±{bounds.max_translation} m)")
+        if hit:
+            print(f"WARNING: {name} ran into its bound on {', '.join(hit)}: a runaway, do not trust its estimate")
+            summary.setdefault("hit_bounds", {})[name] = hit
+    moving = still_moving(config.get_base_dir() / HISTORY_FILE)
+    for name, spread in moving.items():
+        print(f"WARNING: {name} is still moving over its last estimates ({spread}); run longer or check the data")
+    summary["still_moving"] = moving
+    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    if cfg.report:
+        from moisst_ns.report import write_report
+
+        report = write_report(config.get_base_dir() / "config.yml", out / "report", pipeline=trainer.pipeline)
+        print(f"diagnostics: {report}")
+    return config.get_base_dir() / "config.yml"
+
+
+def run_lidar_first(cfg: CalibrateConfig, rig, prior, truth, out: Path) -> Optional[dict]:
+    """The LiDAR-first stage into ``out/lidar_first`` when the rig has a non-reference LiDAR; its summary, or None."""
+    from moisst_ns.stages.lidar_first import LidarFirstConfig, LidarFirstError, calibrate_lidars, lidar_sensors
+    from moisst_ns.stages.lidar_report import write_stage_outputs
+
+    if not lidar_sensors(rig):
+        return None
+    config = LidarFirstConfig(max_time_offset=cfg.max_time_offset if cfg.max_time_offset is not None else 0.3, seed=cfg.seed,
+                              estimate_extrinsic=cfg.extrinsics, estimate_time_offset=cfg.time_offsets)
+    try:
+        result = calibrate_lidars(rig, config)
+    except LidarFirstError as err:
+        raise CalibrationError(f"{err} (--no-lidar-first skips the LiDAR-first stage)") from None
+    stage = write_stage_outputs(result, config, prior, truth, out / "lidar_first")
+    for name, entry in stage["sensors"].items():
+        line = f"LiDAR-first: {name} in {entry['wall_s']:.1f} s"
+        if truth is not None:
+            e = entry["errors_after"]
+            line += f": {e['translation_cm']:.2f} cm / {e['rotation_deg']:.3f} deg / {e['time_ms']:.2f} ms from the truth"
+        print(line + (f"; weakly observable: {', '.join(entry['weak'])}" if entry["weak"] else ""))
+    return stage
+
+

@@ -1,0 +1,7 @@
+"""Everything about a run folder: the history CSV (one schema, one writer, one reader), opening a run, the output
+folder check, error tables and summaries. Used by ``cli/*``, the report and the benchmark; nothing here imports
+``moisst_ns.cli``. Errors are ``RunError`` with a one-line message; only ``cli/`` turns them into exit codes."""
+
+
+class RunError(ValueError):
+    """A run folder, config.yml, history or output folder that cannot be used; the message is one line."""
