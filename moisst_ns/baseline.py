@@ -24,9 +24,9 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
-from moisst_ns.data.dataparser import OPENCV_TO_OPENGL, MoisstRigDataParserConfig
+from moisst_ns.data.dataparser import MoisstRigDataParserConfig
 from moisst_ns.method_configs import _adam_decay, moisst_trainer_config
-from moisst_ns.model import _NoLPIPS
+from moisst_ns.compat import _NoLPIPS
 
 
 @dataclass
@@ -125,6 +125,4 @@ def run_nerfacto(dataset: Path, out: Path, preset: Literal["moisst", "moisst-lit
             c2w[:, :3, 3] = c2w[:, :3, 3] + adj[:, :3, 3]
     poses = np.tile(np.eye(4), (n, 1, 1))
     poses[:, :3, :4] = c2w.numpy()
-    poses[:, :3, 3] = poses[:, :3, 3] / rig.extra["world_scale"] + rig.extra["world_center"]
-    poses = poses @ OPENCV_TO_OPENGL  # OpenGL -> OpenCV camera axes (the matrix is its own inverse)
-    return NerfactoResult(poses, np.asarray(rig.extra["frame_sensor_index"]), np.asarray(rig.extra["frame_stamps"]), per_step)
+    return NerfactoResult(rig.world.camera_to_world(poses), np.asarray(rig.frame_sensor_index), np.asarray(rig.frame_stamps), per_step)

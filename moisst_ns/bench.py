@@ -123,7 +123,7 @@ def make_bench_rig(out: Path, raw: dict, seed: int, layout: str, perturb: dict) 
     hard-links them (copies across file systems) and gets the rig.json ``moisst-synth`` would write for that
     perturbation (the same seeded signs, ``synth.make_priors``).
     """
-    from moisst_ns.synth import SynthConfig, make_priors, make_rig, make_truth
+    from moisst_ns.datasets.synth import SynthConfig, make_priors, make_rig, make_truth
 
     rig = raw["rig"]
     t, r, d = (float(perturb[k]) for k in ("translation", "rotation", "time"))

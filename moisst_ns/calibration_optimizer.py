@@ -23,7 +23,6 @@ from nerfstudio.cameras.rays import RayBundle
 from moisst_ns.rig.calibration import RigCalibration, RigData
 from moisst_ns.rig.geometry import pose_to_xyz_rpy
 
-OPENCV_TO_OPENGL = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 
 
 @dataclass
@@ -78,13 +77,15 @@ class CalibrationOptimizer(CameraOptimizer):
             if name not in rig.sensor_names:
                 raise ValueError(f"frozen_sensors: {name!r} is not a sensor of the rig {rig.sensor_names}")
             self.rig.trainable[rig.sensor_names.index(name)] = False
-        frame_sensor = torch.as_tensor(rig.extra["frame_sensor_index"], dtype=torch.long)
+        if rig.frame_sensor_index is None or rig.frame_stamps is None or rig.world is None:
+            raise ValueError("the rig's camera frames and world frame are not set (build RigData with the moisst-rig dataparser)")
+        frame_sensor = torch.as_tensor(rig.frame_sensor_index, dtype=torch.long)
         if frame_sensor.shape[0] != num_cameras:
             raise ValueError(f"rig has {frame_sensor.shape[0]} camera frames, the dataset {num_cameras}")
         self.register_buffer("frame_sensor", frame_sensor, persistent=False)
-        self.register_buffer("frame_stamps", torch.as_tensor(rig.extra["frame_stamps"], dtype=torch.float64), persistent=False)
-        self.register_buffer("world_center", torch.as_tensor(rig.extra["world_center"], dtype=torch.float64), persistent=False)
-        self.world_scale = float(rig.extra["world_scale"])
+        self.register_buffer("frame_stamps", torch.as_tensor(rig.frame_stamps, dtype=torch.float64), persistent=False)
+        self.world = rig.world
+        self.world_scale = float(rig.world.scale)
         with torch.no_grad():
             self.register_buffer("prior_c2w", self.frame_c2w(torch.arange(num_cameras), prior=True), persistent=False)
         self.set_trainable(self.config.mode != "off")
@@ -107,10 +108,8 @@ class CalibrationOptimizer(CameraOptimizer):
     # --- poses --------------------------------------------------------------------------------------------------
 
     def to_model_frame(self, world_T_sensor: Float[Tensor, "*batch 4 4"]) -> Float[Tensor, "*batch 4 4"]:
-        """Metric OpenCV ``world_T_sensor`` -> nerfstudio's normalised OpenGL camera-to-world."""
-        pose = world_T_sensor @ OPENCV_TO_OPENGL.to(world_T_sensor.device)
-        translation = self.world_scale * (pose[..., :3, 3] - self.world_center)
-        return torch.cat([torch.cat([pose[..., :3, :3], translation[..., None]], -1), pose[..., 3:, :]], -2)
+        """Metric OpenCV ``world_T_sensor`` -> nerfstudio's normalised OpenGL camera-to-world (``WorldFrame``)."""
+        return self.world.camera_to_model(world_T_sensor)
 
     def frame_c2w(self, indices: Int[Tensor, "num"], prior: bool = False) -> Float[Tensor, "num 4 4"]:
         """Calibrated (or prior) camera-to-world of training frames, nerfstudio frame, float64 (eq. 10)."""
@@ -176,7 +175,7 @@ class CalibrationOptimizer(CameraOptimizer):
         """
         assert self.rig is not None
         pose = self.rig.sensor_poses(sensor, stamp)
-        origins = self.world_scale * (pose[:, :3, 3] - self.world_center)
+        origins = self.world.points_to_model(pose[:, :3, 3])
         dirs = (pose[:, :3, :3] @ points.to(pose.dtype)[..., None])[..., 0]
         dirs = dirs / dirs.norm(dim=-1, keepdim=True)
         return origins.float(), dirs.float()

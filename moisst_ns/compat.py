@@ -1,4 +1,5 @@
-"""Compatibility shims for nerfstudio 1.1.5 on current torch (applied when ``moisst_ns`` is imported).
+"""Compatibility shims for nerfstudio 1.1.5 on current torch (applied when ``moisst_ns`` is imported), and the
+LPIPS stand-in that keeps torchmetrics from downloading AlexNet weights at run time.
 
 torch >= 2.6 loads checkpoints with ``weights_only=True``; nerfstudio 1.1.5 checkpoints hold numpy scalars
 (e.g. scheduler and optimiser state), which that loader refuses, so ``ns-viewer``, ``ns-export``, ``ns-eval`` and
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from torch import Tensor, nn
 
 
 def allow_numpy_in_checkpoints() -> None:
@@ -22,3 +24,13 @@ def allow_numpy_in_checkpoints() -> None:
         if dtype_cls is not None:
             safe.append(dtype_cls)
     add(safe)
+
+
+class _NoLPIPS(nn.Module):
+    """Stands in for torchmetrics' LPIPS, whose AlexNet weights would be downloaded at run time."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__()
+
+    def forward(self, *args, **kwargs) -> Tensor:
+        return torch.tensor(float("nan"))

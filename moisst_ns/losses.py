@@ -1,4 +1,5 @@
-"""The patch losses of paper eq. 13 (DSSIM and depth smoothness), as pure torch functions.
+"""The losses of paper eq. 7 and 13 beyond nerfacto's colour loss (LiDAR depth, DSSIM, depth smoothness), as pure
+torch functions.
 
 Patches come from nerfstudio's ``PatchPixelSampler`` (``datamanager.patch_size > 1``), which orders the camera
 rays of a batch as (num_patches, patch, patch).
@@ -6,7 +7,6 @@ rays of a batch as (num_patches, patch, patch).
 
 from __future__ import annotations
 
-import torch
 from jaxtyping import Float
 from torch import Tensor
 
@@ -46,3 +46,19 @@ def depth_smoothness_loss(depth: Float[Tensor, "num_patches patch patch"]) -> Fl
     dx = (depth[:, :, 1:] - depth[:, :, :-1]).pow(2).sum((1, 2))
     dy = (depth[:, 1:, :] - depth[:, :-1, :]).pow(2).sum((1, 2))
     return (dx + dy).mean()
+
+
+def lidar_depth_loss(expected_depth: Float[Tensor, "num_rays"], measured_range: Float[Tensor, "num_rays"],
+                     units_per_metre: float = 1.0) -> Float[Tensor, ""]:
+    """Paper eq. 7: squared error between the rendered (expected) depth of a LiDAR ray and the measured range.
+
+    Args:
+        expected_depth: volume-rendered expected distance along each unit-direction LiDAR ray.
+        measured_range: the LiDAR's range for that ray, same units.
+        units_per_metre: how many of those units make a metre (the dataparser's ``world_scale`` for model units);
+            the error is divided by it, so the loss is in square metres (1: in the input's own units, the paper's).
+
+    Returns:
+        The mean squared error.
+    """
+    return ((expected_depth - measured_range.to(expected_depth)) / units_per_metre).pow(2).mean()

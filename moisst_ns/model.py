@@ -17,8 +17,7 @@ from typing import Dict, List, Literal, Optional, Tuple, Type
 from unittest import mock
 
 import torch
-from jaxtyping import Float
-from torch import Tensor, nn
+from torch import Tensor
 from torch.nn import Parameter
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
@@ -28,18 +27,13 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from moisst_ns.runs.history import append_history
 from moisst_ns.viewer_panel import CalibrationPanel
-from moisst_ns.losses import depth_smoothness_loss, dssim_loss
+from moisst_ns.compat import _NoLPIPS
+from moisst_ns.data.layout import RayLayout
+from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss
+from moisst_ns.schedules import rescale_schedules
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
 
 
-class _NoLPIPS(nn.Module):
-    """Stands in for torchmetrics' LPIPS, whose AlexNet weights would be downloaded at run time."""
-
-    def __init__(self, **kwargs) -> None:
-        super().__init__()
-
-    def forward(self, *args, **kwargs) -> Tensor:
-        return torch.tensor(float("nan"))
 
 
 def hash_level_weights(progress: float, num_levels: int, start_levels: float) -> Tensor:
@@ -59,52 +53,10 @@ def hash_level_weights(progress: float, num_levels: int, start_levels: float) ->
     return (1.0 - torch.cos(math.pi * torch.clamp(alpha - k, 0.0, 1.0))) / 2.0
 
 
-def lidar_depth_loss(expected_depth: Float[Tensor, "num_rays"], measured_range: Float[Tensor, "num_rays"],
-                     units_per_metre: float = 1.0) -> Float[Tensor, ""]:
-    """Paper eq. 7: squared error between the rendered (expected) depth of a LiDAR ray and the measured range.
-
-    Args:
-        expected_depth: volume-rendered expected distance along each unit-direction LiDAR ray.
-        measured_range: the LiDAR's range for that ray, same units.
-        units_per_metre: how many of those units make a metre (the dataparser's ``world_scale`` for model units);
-            the error is divided by it, so the loss is in square metres (1: in the input's own units, the paper's).
-
-    Returns:
-        The mean squared error.
-    """
-    return ((expected_depth - measured_range.to(expected_depth)) / units_per_metre).pow(2).mean()
 
 
-MODEL_SCHEDULE_FIELDS = ("calibration_warmup_steps", "registration_steps", "depth_loss_start", "depth_loss_ramp_steps", "hash_weight_decay_steps")
-DATAMANAGER_SCHEDULE_FIELDS = ("reference_only_steps", "registration_steps", "lidar_start_step")
 
 
-def rescale_schedules(trainer_config, built_for: int, steps: int) -> None:
-    """Rescale, in place, every step-valued schedule of a moisst trainer config built for ``built_for`` steps to a
-    run of ``steps``: the model's phases, the datamanager's phases and the optimisers' decay lengths.
-
-    The model, datamanager and schedulers read these config objects at every step, so this works after set-up.
-    ``moisst_trainer_config(method, steps)`` gives the same values (to rounding) directly.
-    """
-    ratio = steps / built_for
-
-    def scaled(value: int) -> int:
-        return int(round(value * ratio))
-
-    model = trainer_config.pipeline.model
-    datamanager = trainer_config.pipeline.datamanager
-    for name in MODEL_SCHEDULE_FIELDS:
-        setattr(model, name, scaled(getattr(model, name)))
-    model.coarse_to_fine = tuple(scaled(v) for v in model.coarse_to_fine)
-    for name in DATAMANAGER_SCHEDULE_FIELDS:
-        setattr(datamanager, name, scaled(getattr(datamanager, name)))
-    for settings in trainer_config.optimizers.values():
-        scheduler = settings.get("scheduler")
-        if scheduler is not None and hasattr(scheduler, "max_steps"):
-            scheduler.max_steps = scaled(scheduler.max_steps)
-            if getattr(scheduler, "warmup_steps", 0):
-                scheduler.warmup_steps = scaled(scheduler.warmup_steps)
-    model.schedule_steps = steps
 
 
 @dataclass
@@ -321,14 +273,15 @@ class MoisstModel(NerfactoModel):
 
     @staticmethod
     def _split(outputs: Dict[str, Tensor], batch: Dict) -> Tuple[Dict[str, Tensor], Optional[slice]]:
-        """Camera-ray view of the outputs (for nerfacto's colour loss/metrics) and the LiDAR rays' slice."""
-        num = batch.get("num_camera_rays")
-        if num is None or outputs["rgb"].shape[0] == num:
+        """Camera-ray view of the outputs (for nerfacto's colour loss/metrics) and the LiDAR rays' slice
+        (``batch["ray_layout"]``; eval batches have none: all camera rays)."""
+        layout: Optional[RayLayout] = batch.get("ray_layout")
+        if layout is None or layout.lidar is None or outputs["rgb"].shape[0] == layout.num_camera:
             return outputs, None
         camera = dict(outputs)
         for key in ("rgb", "accumulation", "depth", "expected_depth"):
-            camera[key] = outputs[key][:num]
-        return camera, slice(num, None)
+            camera[key] = outputs[key][layout.camera]
+        return camera, layout.lidar
 
     def get_metrics_dict(self, outputs, batch):
         camera, lidar = self._split(outputs, batch)
@@ -345,15 +298,14 @@ class MoisstModel(NerfactoModel):
             if keep is not None and keep.any():
                 batch = dict(batch)
                 batch["image"] = batch["image"][keep]
-                if not bool(keep.all()):
-                    batch["num_patch_rays"] = 0  # the patch layout is broken by the filter: no patch losses
+                if not bool(keep.all()) and "ray_layout" in batch:
+                    batch["ray_layout"] = batch["ray_layout"].without_patches()  # the filter breaks the patches
                 for key in ("rgb", "accumulation", "expected_depth"):
                     camera[key] = camera[key][keep.to(camera[key].device)]
         loss_dict = super().get_loss_dict(camera, batch, metrics_dict)
-        patch = int(batch.get("patch_size", 1))
-        # patch rays come first in the batch (all camera rays when every ray is in a patch)
-        num_patch = int(batch.get("num_patch_rays", camera["rgb"].shape[0]))
-        if self.training and patch > 1 and num_patch % (patch * patch) == 0 and 0 < num_patch <= camera["rgb"].shape[0]:
+        layout: Optional[RayLayout] = batch.get("ray_layout")
+        patch, num_patch = (layout.patch_size, layout.num_patch) if layout is not None else (1, 0)
+        if self.training and layout is not None and layout.has_patches and num_patch <= camera["rgb"].shape[0]:
             shape = (-1, patch, patch)
             if self.config.dssim_loss_mult > 0:
                 image = self.renderer_rgb.blend_background(batch["image"][:num_patch].to(self.device))

@@ -88,6 +88,28 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+LIDAR_DEPTH_PER_M2 = 5.0
+"""Weight of the metric LiDAR depth loss once the LiDARs are calibrated, per m^2 (docs/method.md: the old default
+was 0.018 per m^2 on the 50-frame rig; 500 model units, ~5 per m^2, lowered the floor five-fold on the tiny rig)."""
+
+
+def lidar_scene_settings(config, depth_per_m2: float) -> None:
+    """What calibrated LiDARs change in the NeRF stage: their depth, in metres with ``depth_per_m2``, shapes the
+    scene from step 0, over the whole scan (not only the reference camera's view, so the side cameras find
+    geometry where they look) and also while the cameras register against the scene.
+
+    Args:
+        config: the trainer config (changed in place).
+        depth_per_m2: depth loss weight per square metre.
+    """
+    model, datamanager = config.pipeline.model, config.pipeline.datamanager
+    model.registration_sensors = "cameras"
+    model.depth_loss_units, model.depth_loss_mult = "metric", depth_per_m2
+    model.depth_loss_start = model.depth_loss_ramp_steps = 0
+    datamanager.lidar_start_step = 0
+    datamanager.lidar_reference_view_only = False
+
+
 class CalibrationError(ValueError):
     """A calibration that cannot start or had to stop; the message is one line naming file/option and problem."""
 
@@ -158,7 +180,9 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     if stage is not None:
         config.pipeline.datamanager.dataparser.prior_calibration = out / "lidar_first" / "calibration.json"
         model.camera_optimizer.frozen_sensors = tuple(stage["sensors"])
-        model.registration_sensors = "cameras"  # the calibrated LiDARs shape the scene while the cameras register
+        lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
+        if not cfg.depth_loss:
+            model.depth_loss_mult = 0.0
         config.save_config()
         if not cfg.resume:
             history = config.get_base_dir() / HISTORY_FILE

@@ -14,7 +14,7 @@ import shutil
 from pathlib import Path
 
 from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
-from moisst_ns.synth import SynthConfig, make_rig
+from moisst_ns.datasets.synth import SynthConfig, make_rig
 
 
 def main() -> None:

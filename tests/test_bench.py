@@ -126,7 +126,7 @@ def test_micro_bench_fills_every_section(tmp_path):
 
 def test_perturbed_variant_rig_equals_what_moisst_synth_writes(tmp_path):
     from moisst_ns.bench import make_bench_rig
-    from moisst_ns.synth import SynthConfig, make_rig
+    from moisst_ns.datasets.synth import SynthConfig, make_rig
 
     raw = {"rig": {"width": 48, "height": 36, "frames": 4}}
     perturb = {"translation": 0.2, "rotation": 2.0, "time": 0.05}

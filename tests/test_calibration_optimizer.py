@@ -11,7 +11,7 @@ from PIL import Image
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
 from moisst_ns.data.dataparser import MoisstRigDataParserConfig
 from moisst_ns.rig.format import load_calibration
-from moisst_ns.synth import SynthConfig, build_scene, make_rig
+from moisst_ns.datasets.synth import SynthConfig, build_scene, make_rig
 
 
 @pytest.fixture(scope="module")
@@ -47,16 +47,16 @@ def test_regenerated_rays_hit_what_the_synthetic_camera_saw(rig_dir):
     scene = build_scene(SynthConfig(out=rig_dir, **{k: meta[k] for k in ("seed", "frames", "width", "height", "layout") if k in meta}))
     opt.rig.set_corrections_to(truth)
     data = outputs.metadata["moisst_rig"]
-    scale, center = data.extra["world_scale"], data.extra["world_center"]
+    scale, center = data.world.scale, data.world.center
     for cam_idx in range(0, len(outputs.cameras), 5):
         bundle = outputs.cameras.generate_rays(camera_indices=torch.tensor([[cam_idx]]), keep_shape=False)
         opt.apply_to_raybundle(bundle)
         origins = bundle.origins.detach().double().numpy() / scale + center
         directions = bundle.directions.detach().double().numpy()
         # the same pixel rays straight from eq. 2 with the true calibration, in metres (OpenCV camera)
-        sensor = int(data.extra["frame_sensor_index"][cam_idx])
+        sensor = int(data.frame_sensor_index[cam_idx])
         name = data.sensor_names[sensor]
-        pose = opt.rig.reference_pose(torch.tensor(data.extra["frame_stamps"][cam_idx] + truth.time_offset[name], dtype=torch.float64))
+        pose = opt.rig.reference_pose(torch.tensor(data.frame_stamps[cam_idx] + truth.time_offset[name], dtype=torch.float64))
         world_T_cam = (pose @ torch.as_tensor(truth.T_ref_sensor[name])).numpy()
         assert np.allclose(origins, world_T_cam[:3, 3], atol=1e-4)
         k = outputs.cameras[cam_idx]
@@ -75,15 +75,15 @@ def test_gradients_reach_extrinsic_and_time_offset(rig_dir):
     """d(origin)/d(translation) = scale * world_R_ref and d(origin)/d(delta) = scale * sensor velocity (finite differences)."""
     outputs, opt = setup(rig_dir)
     data = outputs.metadata["moisst_rig"]
-    scale = data.extra["world_scale"]
-    cam_idx = int(np.nonzero(data.extra["frame_sensor_index"] != data.reference_index)[0][2])
-    sensor = int(data.extra["frame_sensor_index"][cam_idx])
+    scale = data.world.scale
+    cam_idx = int(np.nonzero(data.frame_sensor_index != data.reference_index)[0][2])
+    sensor = int(data.frame_sensor_index[cam_idx])
     bundle = outputs.cameras.generate_rays(camera_indices=torch.tensor([[cam_idx]]), keep_shape=False)[:4]
     opt.apply_to_raybundle(bundle)
     origin = bundle.origins[0]
     jac_t = torch.stack([torch.autograd.grad(origin[k], opt.rig.translation, retain_graph=True)[0][sensor] for k in range(3)])
     # the translation correction lives in the reference frame: d(origin)/d(t) = scale * world_R_ref(t + delta)
-    stamp = torch.tensor(data.extra["frame_stamps"][cam_idx], dtype=torch.float64)
+    stamp = torch.tensor(data.frame_stamps[cam_idx], dtype=torch.float64)
     world_R_ref = opt.rig.reference_pose(stamp + opt.rig.time_offsets()[sensor])[:3, :3].detach().float()
     assert torch.allclose(jac_t, scale * world_R_ref, atol=1e-5)
     grad_delta = torch.stack([torch.autograd.grad(origin[k], opt.rig.time_offset, retain_graph=True)[0][sensor] for k in range(3)])

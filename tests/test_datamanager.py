@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from moisst_ns.method_configs import moisst_trainer_config
-from moisst_ns.synth import SynthConfig, make_rig
+from moisst_ns.datasets.synth import SynthConfig, make_rig
 
 
 @pytest.fixture(scope="module")
@@ -26,8 +26,10 @@ def test_quarter_of_the_camera_rays_are_patches(datamanager, step):
     patch = datamanager.config.patch_size
     assert datamanager.config.patch_fraction == 0.25
     total = datamanager.config.train_num_rays_per_batch
-    n_patch = batch["num_patch_rays"]
-    assert n_patch == total // 4 and batch["num_camera_rays"] == total and batch["image"].shape[0] == total
+    layout = batch["ray_layout"]
+    n_patch = layout.num_patch
+    assert n_patch == total // 4 and layout.num_camera == total and batch["image"].shape[0] == total
+    assert layout.patch_size == patch and layout.has_patches
     patches = batch["indices"][:n_patch].view(-1, patch, patch, 3)
     # one image per patch, rows and columns consecutive
     assert (patches[..., 0] == patches[:, :1, :1, 0]).all()

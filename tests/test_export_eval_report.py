@@ -22,7 +22,7 @@ from moisst_ns.cli import evaluate, export
 from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
 from moisst_ns.report import draw_points, lidar_points_world, nearest_lidar_frames, project_points, sensor_pose, write_report
 from moisst_ns.rig.format import RigFormatError, load_calibration, load_lidar_scan, load_rig
-from moisst_ns.synth import SynthConfig, build_scene, make_path, make_rig
+from moisst_ns.datasets.synth import SynthConfig, build_scene, make_path, make_rig
 
 from helpers import tree_hash
 
@@ -127,14 +127,18 @@ def test_summary_json_estimates_and_change_from_prior(run):
     estimate = calib.estimate()
     assert summary["reference_sensor"] == "cam_front" and summary["run"]["step"] == 11
     assert set(summary["errors_after"]) == {"cam_front_right", "cam_left", "lidar"}
+    from moisst_ns.runs.folder import prior_calibration
+
+    priors = prior_calibration(calib.data)  # rig.json's, although the NeRF started the LiDAR from the LiDAR-first stage
+    assert calib.data.dataset_priors is not None
     for i, name in enumerate(calib.data.sensor_names):
         entry = summary["sensors"][name]
         expected = pose_to_xyz_rpy(torch.as_tensor(estimate.T_ref_sensor[name])).numpy()
         assert [entry["estimate"][k] for k in ("x", "y", "z", "roll", "pitch", "yaw")] == pytest.approx(expected, abs=1e-9)
         assert entry["estimate"]["delta_ms"] == pytest.approx(estimate.time_offset[name] * 1000, abs=1e-9)
-        prior = calib.data.prior_extrinsics[i]
+        prior = priors.T_ref_sensor[name]
         assert entry["prior"]["x"] == pytest.approx(prior[0, 3], abs=1e-12)
-        assert entry["prior"]["delta_ms"] == pytest.approx(calib.data.prior_time_offsets[i] * 1000, abs=1e-9)
+        assert entry["prior"]["delta_ms"] == pytest.approx(priors.time_offset[name] * 1000, abs=1e-9)
         for k in ("x", "y", "z", "delta_ms"):
             assert entry["change"][k] == pytest.approx(entry["estimate"][k] - entry["prior"][k], abs=1e-9)
         relative = prior[:3, :3].T @ estimate.T_ref_sensor[name][:3, :3]
@@ -233,8 +237,10 @@ def test_moisst_eval_history_mean_and_std_are_numpys(run):
         stats = json.loads(result.stdout)
         tails = read_csv_tail(history, last)
         assert set(stats) == set(tails) == {"cam_front_right", "cam_left", "lidar"}
+        stage_rows = len(json.loads((run["out"] / "lidar_first" / "lidar_first.json").read_text())["sensors"]["lidar"]["history"])
         for name, rows in tails.items():
-            assert stats[name]["rows"] == len(rows) == min(last, 4)  # steps 0, 3, 6, 9
+            logged = 4 + (stage_rows if name == "lidar" else 0)  # steps 0, 3, 6, 9 (and the LiDAR-first stage's -N..-1)
+            assert stats[name]["rows"] == len(rows) == min(last, logged)
             assert stats[name]["first_step"] == int(rows[0]["step"]) and stats[name]["last_step"] == 9
             columns = ["err_translation_cm", "err_rotation_deg", "err_time_ms", "x", "y", "z", "roll", "pitch", "yaw", "delta_ms"]
             assert list(stats[name]["mean"]) == columns
@@ -242,7 +248,10 @@ def test_moisst_eval_history_mean_and_std_are_numpys(run):
                 values = np.array([float(r[c]) for r in rows])
                 assert stats[name]["mean"][c] == pytest.approx(np.mean(values), rel=1e-12, abs=1e-15)
                 assert stats[name]["std"][c] == pytest.approx(np.std(values), rel=1e-9, abs=1e-15)
-            assert stats[name]["std"]["x"] > 0
+            if name == "lidar" and last <= 4:  # held at the LiDAR-first estimate during the NeRF
+                assert stats[name]["std"]["x"] == 0 and stats[name]["std"]["delta_ms"] == 0
+            else:
+                assert stats[name]["std"]["x"] > 0
     table = subprocess.run([str(BIN / "moisst-eval"), "--history", str(run_dir), "--last", "2"], capture_output=True, text=True)
     assert table.returncode == 0 and "last 2 logged rows" in table.stdout and "delta_ms (ms)" in table.stdout
 

@@ -12,7 +12,7 @@ from helpers import tree_hash
 from moisst_ns.cli.floor import FloorConfig, floor_errors, run_floor
 from moisst_ns.rig.calibration import RigCalibration, RigData
 from moisst_ns.rig.format import load_calibration, load_rig
-from moisst_ns.synth import SynthConfig, make_rig
+from moisst_ns.datasets.synth import SynthConfig, make_rig
 
 
 @pytest.fixture(scope="module")

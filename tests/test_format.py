@@ -31,7 +31,7 @@ from moisst_ns.rig.format import (
     write_rig_json,
     write_tum,
 )
-from moisst_ns.synth import SynthConfig, make_rig
+from moisst_ns.datasets.synth import SynthConfig, make_rig
 
 REF = "cam_front"
 CAM = "cam_left"  # a non-reference camera of the synthetic rig

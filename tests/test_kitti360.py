@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from moisst_ns.kitti360 import (
+from moisst_ns.datasets.kitti360 import (
     Kitti360Config,
     Kitti360Error,
     MeiCamera,
@@ -130,7 +130,7 @@ def test_fisheye_is_rectified_onto_the_right_pinhole_view(sample, converted):
     from PIL import Image
 
     from moisst_ns.rig.geometry import ReferenceTrajectory
-    from moisst_ns.synth import SynthConfig, build_scene, make_path, render_camera, rot_y
+    from moisst_ns.datasets.synth import SynthConfig, build_scene, make_path, render_camera, rot_y
 
     rig = load_rig(converted)
     config = SynthConfig(out=sample["native"], width=64, height=48, frames=8, seed=3)
@@ -247,7 +247,7 @@ def test_bad_input_gets_one_clear_error(sample, tmp_path, edit, file_part, messa
 
 def test_cli_error_is_one_line_and_names_the_file(sample, tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "moisst_ns.kitti360", str(sample["root"]), SEQUENCE, "--out", str(tmp_path / "o"), "--last-frame", "7"],
+        [sys.executable, "-m", "moisst_ns.cli.kitti360_to_rig", str(sample["root"]), SEQUENCE, "--out", str(tmp_path / "o"), "--last-frame", "7"],
         capture_output=True, text=True,
     )
     assert proc.returncode != 0

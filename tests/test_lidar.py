@@ -8,9 +8,10 @@ import torch
 
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
 from moisst_ns.data.datamanager import load_lidar_points
-from moisst_ns.model import lidar_depth_loss
+from moisst_ns.losses import lidar_depth_loss
 from moisst_ns.rig.calibration import RigData
 from moisst_ns.rig.format import RigFormatError
+from moisst_ns.rig.world import WorldFrame
 
 
 def straight_line_rig(lidar_delta=0.05, scale=0.5, center=(1.0, 0.0, 0.0)):
@@ -29,7 +30,8 @@ def straight_line_rig(lidar_delta=0.05, scale=0.5, center=(1.0, 0.0, 0.0)):
         trajectory_quats_xyzw=np.array([[0, 0, 0, 1.0], [0, 0, 0, 1.0]]),
         t0=100.0,
     )
-    data.extra.update(frame_sensor_index=np.array([0]), frame_stamps=np.array([0.0]), world_center=np.array(center), world_scale=scale)
+    data.frame_sensor_index, data.frame_stamps = np.array([0]), np.array([0.0])
+    data.world = WorldFrame(center=np.array(center), scale=scale)
     return CalibrationOptimizer(CalibrationOptimizerConfig(), num_cameras=1, device="cpu", rig=data)
 
 

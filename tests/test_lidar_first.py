@@ -19,7 +19,7 @@ from moisst_ns.rig.geometry import calibrated_extrinsic, interpolate_trajectory,
 from moisst_ns.stages.lidar_first import Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, calibrate_lidars, consistency_residuals
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points, placement_jacobian
 from moisst_ns.stages.observability import PARAMETERS, analyse_observability
-from moisst_ns.synth import SynthConfig, build_scene, make_rig
+from moisst_ns.datasets.synth import SynthConfig, build_scene, make_rig
 from helpers import tree_hash
 
 

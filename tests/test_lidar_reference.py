@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
 from moisst_ns.rig.format import load_calibration, load_rig, load_tum, write_tum
-from moisst_ns.synth import SynthConfig, make_rig
+from moisst_ns.datasets.synth import SynthConfig, make_rig
 
 
 def rebase_on_lidar(src: Path, dst: Path) -> None:

@@ -11,7 +11,7 @@ import torch
 
 from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
 from moisst_ns.rig.format import load_calibration
-from moisst_ns.synth import SynthConfig, make_rig
+from moisst_ns.datasets.synth import SynthConfig, make_rig
 
 from helpers import tree_hash
 

@@ -4,8 +4,8 @@
 import pytest
 
 from moisst_ns.method_configs import moisst_trainer_config
-from moisst_ns.model import DATAMANAGER_SCHEDULE_FIELDS, MODEL_SCHEDULE_FIELDS, rescale_schedules
-from moisst_ns.synth import SynthConfig, make_rig
+from moisst_ns.schedules import DATAMANAGER_SCHEDULE_FIELDS, MODEL_SCHEDULE_FIELDS, rescale_schedules
+from moisst_ns.datasets.synth import SynthConfig, make_rig
 
 
 def schedule(config) -> dict:

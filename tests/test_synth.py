@@ -1,4 +1,4 @@
-"""Tests of ``moisst-synth`` (moisst_ns/synth.py): tiny rigs, generated once per module."""
+"""Tests of ``moisst-synth`` (moisst_ns/datasets/synth.py): tiny rigs, generated once per module."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from PIL import Image
 
 from moisst_ns.rig.format import load_calibration, load_lidar_scan, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, sensor_pose
-from moisst_ns.synth import (
+from moisst_ns.datasets.synth import (
     SynthError,
     PERIOD,
     SynthConfig,
@@ -108,7 +108,7 @@ def test_paper_perturbation(rigs):
 
 
 def test_perturb_magnitudes_configurable(tmp_path):
-    from moisst_ns.synth import make_priors
+    from moisst_ns.datasets.synth import make_priors
 
     cfg = tiny(tmp_path / "x", perturb="paper", perturb_translation=0.2, perturb_rotation=2.0, perturb_time=0.05)
     truth = make_truth(cfg)

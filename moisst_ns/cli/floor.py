@@ -21,7 +21,7 @@ from typing import Dict, List, Literal, Optional
 import tyro
 
 from moisst_ns.cli.common import fail
-from moisst_ns.pipeline import seed_everything
+from moisst_ns.pipeline import LIDAR_DEPTH_PER_M2, lidar_scene_settings, seed_everything
 from moisst_ns.runs import RunError
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
@@ -54,6 +54,9 @@ class FloorConfig:
     depth_loss_per_m2: Optional[float] = None
     """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
     method's normalised-depth loss (the paper's) when omitted."""
+    lidar_scene: bool = True
+    """Train the scene as moisst-calibrate does once its LiDAR-first stage ran (metric LiDAR depth from step 0 over
+    the whole scan; ``--depth-loss-per-m2`` or the pipeline's default weight); --no-lidar-scene: the paper's."""
 
 
 def floor_errors(rows: List[Dict[str, float]], average_last: int) -> Dict[str, Dict[str, float]]:
@@ -96,7 +99,9 @@ def run_floor(cfg: FloorConfig) -> Dict[str, Dict[str, float]]:
     config.machine.seed = cfg.seed
     config.vis = "tensorboard"
     model, datamanager = config.pipeline.model, config.pipeline.datamanager
-    if cfg.depth_loss_per_m2 is not None:
+    if cfg.lidar_scene and any(s.type == "lidar" for s in rig.sensors.values()):
+        lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
+    elif cfg.depth_loss_per_m2 is not None:
         model.depth_loss_units, model.depth_loss_mult = "metric", cfg.depth_loss_per_m2
     # The scene is built at the true calibration, so the phases that protect it from miscalibrated sensors
     # (reference-only warm-up, detached registration, coarse-to-fine) are switched off: the best scene of this budget.

@@ -1,5 +1,5 @@
 """``moisst-kitti360-to-rig ROOT SEQUENCE --out DIR``: a KITTI-360 sequence as a moisst-rig/1 dataset
-(``moisst_ns.kitti360``)."""
+(``moisst_ns.datasets.kitti360``)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import time
 import tyro
 
 from moisst_ns.cli.common import fail
-from moisst_ns.kitti360 import Kitti360Config, convert
+from moisst_ns.datasets.kitti360 import Kitti360Config, convert
 from moisst_ns.rig.format import RigFormatError
 
 

@@ -1,4 +1,4 @@
-"""``moisst-synth OUT``: a synthetic rig dataset with exact ground truth (``moisst_ns.synth``)."""
+"""``moisst-synth OUT``: a synthetic rig dataset with exact ground truth (``moisst_ns.datasets.synth``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 import tyro
 
 from moisst_ns.cli.common import fail
-from moisst_ns.synth import REFERENCE, SynthConfig, SynthError, make_rig
+from moisst_ns.datasets.synth import REFERENCE, SynthConfig, SynthError, make_rig
 
 
 def main() -> None:

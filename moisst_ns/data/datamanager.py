@@ -10,7 +10,6 @@ is the measured range (``batch["lidar_range"]``, model units).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Dict, Tuple, Type
 
 import numpy as np
@@ -22,7 +21,8 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from moisst_ns.rig.format import Rig, RigFormatError, load_lidar_scan, load_rig
+from moisst_ns.data.layout import RayLayout
+from moisst_ns.rig.format import Rig, RigFormatError, load_lidar_scan
 
 LIDAR_KEYS = ("is_lidar", "lidar_point", "lidar_stamp", "lidar_sensor")
 
@@ -86,9 +86,9 @@ class MoisstDataManager(VanillaDataManager):
     def __init__(self, config: MoisstDataManagerConfig, *args, **kwargs):
         super().__init__(config, *args, **kwargs)
         self.rig = self.train_dataparser_outputs.metadata["moisst_rig"]
-        frame_sensor = torch.as_tensor(self.rig.extra["frame_sensor_index"])
+        frame_sensor = torch.as_tensor(self.rig.frame_sensor_index)
         self.frame_is_reference = frame_sensor == self.rig.reference_index
-        full = load_rig(Path(self.train_dataparser_outputs.metadata["moisst_rig_root"]), check_files=False)
+        full = self.rig.rig
         self.lidar_points, self.lidar_stamps, self.lidar_sensor = load_lidar_points(self.rig, full, config.lidar_min_range, config.lidar_max_range)
         if config.lidar_reference_view_only and self.lidar_points.shape[0] > 0:
             keep = reference_view_mask(self.rig, full, self.lidar_points, self.lidar_sensor)
@@ -151,15 +151,17 @@ class MoisstDataManager(VanillaDataManager):
                      self._sample(self.single_pixel_sampler, image_batch, total - n_patch, fraction)]
             parts = [p for p in parts if p is not None]
             batch = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-            batch["num_patch_rays"] = n_patch
         elif fraction is None or not isinstance(image_batch["image"], torch.Tensor):
             batch = self.train_pixel_sampler.sample(image_batch)
         else:
             batch = self._sample(self.train_pixel_sampler, image_batch, total, fraction)
         ray_bundle = self.train_ray_generator(batch["indices"])
         num_camera = len(ray_bundle)
-        batch["num_camera_rays"] = num_camera
-        batch["patch_size"] = self.config.patch_size
+        if self.single_pixel_sampler is not None and isinstance(image_batch["image"], torch.Tensor):
+            layout = RayLayout(num_camera, num_patch=n_patch, patch_size=patch)
+        else:
+            layout = RayLayout(num_camera, num_patch=num_camera if patch > 1 else 0, patch_size=patch)
+        batch["ray_layout"] = layout
         if not self.has_lidar or step < self.config.lidar_start_step:
             return ray_bundle, batch
         device = ray_bundle.origins.device
@@ -167,8 +169,9 @@ class MoisstDataManager(VanillaDataManager):
         pick = torch.randint(self.lidar_points.shape[0], (self.config.lidar_rays_per_batch,), generator=self.lidar_generator)
         points = self.lidar_points[pick].to(device)
         lidar = lidar_ray_bundle(points, self.lidar_stamps[pick].to(device), self.lidar_sensor[pick].to(device), ray_bundle)
-        batch["lidar_range"] = points.norm(dim=-1) * float(self.rig.extra["world_scale"])
+        batch["lidar_range"] = points.norm(dim=-1) * float(self.rig.world.scale)
         batch["lidar_sensor"] = self.lidar_sensor[pick].to(device)
+        batch["ray_layout"] = RayLayout(num_camera, len(pick), layout.num_patch, layout.patch_size)
         return concat_ray_bundles(ray_bundle, lidar), batch
 
 

@@ -21,9 +21,9 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
 from moisst_ns.rig.calibration import RigCalibration, RigData
-from moisst_ns.rig.format import RigFormatError, load_calibration, load_rig
+from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration, load_rig
+from moisst_ns.rig.world import WorldFrame
 
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 @dataclass
@@ -71,7 +71,9 @@ class MoisstRigDataParser(DataParser):
     def rig_outputs(self, root: Path, split: str) -> DataparserOutputs:
         """Dataparser outputs of the ``moisst-rig/1`` dataset in ``root``."""
         rig = load_rig(root)
+        dataset_priors = None
         if self.config.prior_calibration is not None:
+            dataset_priors = Calibration.from_rig(rig)
             apply_prior_calibration(rig, load_calibration(self.config.prior_calibration), self.config.prior_calibration)
         gt_file = rig.root / "ground_truth.json"
         truth = load_calibration(gt_file) if self.config.load_ground_truth and gt_file.is_file() else None
@@ -80,12 +82,11 @@ class MoisstRigDataParser(DataParser):
             if missing or truth.reference_sensor != rig.reference_sensor:
                 raise RigFormatError(gt_file, "sensors", f"must name the rig's reference sensor and every sensor (missing: {missing})")
         data = RigData.from_rig(rig, truth)
+        data.dataset_priors = dataset_priors
 
         # Normalisation: world_model = scale * (world - center); no rotation, so extrinsics keep their axes.
-        positions = rig.trajectory_positions
-        center = 0.5 * (positions.min(0) + positions.max(0))
-        half_extent = max(float(np.abs(positions - center).max()), 1e-3)
-        scale = self.config.trajectory_extent / half_extent
+        world = WorldFrame.fit(rig.trajectory_positions, self.config.trajectory_extent)
+        center, scale = world.center, world.scale
 
         camera_frames = [i for i, f in enumerate(rig.frames) if rig.sensors[f.sensor].type == "camera"]
         if not camera_frames:
@@ -97,9 +98,7 @@ class MoisstRigDataParser(DataParser):
         sensor_idx = torch.tensor([data.sensor_names.index(f.sensor) for f in frames])
         stamps = torch.tensor([f.timestamp - data.t0 for f in frames], dtype=torch.float64)
         with torch.no_grad():
-            world_T_cam = RigCalibration(data).prior_sensor_poses(sensor_idx, stamps).numpy()
-        c2w = world_T_cam @ OPENCV_TO_OPENGL
-        c2w[:, :3, 3] = scale * (c2w[:, :3, 3] - center)
+            c2w = world.camera_to_model(RigCalibration(data).prior_sensor_poses(sensor_idx, stamps)).numpy()
 
         intr = [rig.sensors[f.sensor].intrinsics for f in frames]
         distortion = torch.zeros(len(frames), 6)
@@ -123,17 +122,14 @@ class MoisstRigDataParser(DataParser):
         # nerfstudio applies the transform, then the scale: store the translation pre-scale so that
         # model = scale * (transform @ world) holds.
         transform[:, 3] = torch.from_numpy(-center).float()
-        data.extra["frame_sensor_index"] = sensor_idx.numpy()
-        data.extra["frame_stamps"] = stamps.numpy()
-        data.extra["world_center"] = center
-        data.extra["world_scale"] = scale
+        data.world, data.frame_sensor_index, data.frame_stamps = world, sensor_idx.numpy(), stamps.numpy()
         return DataparserOutputs(
             image_filenames=[rig.root / f.file_path for f in frames],
             cameras=cameras,
             scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
             dataparser_transform=transform,
             dataparser_scale=scale,
-            metadata={"moisst_rig": data, "moisst_rig_root": str(rig.root)},
+            metadata={"moisst_rig": data},
         )
 
 

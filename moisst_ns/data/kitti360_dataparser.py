@@ -1,6 +1,6 @@
 """nerfstudio dataparser ``moisst-kitti360``: a KITTI-360 sequence straight from its download layout.
 
-Thin glue: the sequence's frame range is converted once by ``moisst_ns.kitti360.convert`` into a cache folder
+Thin glue: the sequence's frame range is converted once by ``moisst_ns.datasets.kitti360.convert`` into a cache folder
 (never into the KITTI-360 folder) and read as ``moisst-rig/1``. Usage::
 
     ns-train moisst-lite moisst-kitti360 --data /data/KITTI-360 --sequence 2013_05_28_drive_0000_sync \\
@@ -19,7 +19,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
 from moisst_ns.data.dataparser import MoisstRigDataParser, MoisstRigDataParserConfig
-from moisst_ns.kitti360 import CAMERAS, Kitti360Config, convert
+from moisst_ns.datasets.kitti360 import CAMERAS, Kitti360Config, convert
 
 
 @dataclass

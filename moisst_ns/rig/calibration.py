@@ -11,7 +11,7 @@ into nerfstudio's normalised OpenGL world.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Dict, List, Optional
 
 import numpy as np
@@ -21,6 +21,7 @@ from jaxtyping import Float, Int
 from torch import Tensor, nn
 
 from moisst_ns.rig.format import Calibration, Rig
+from moisst_ns.rig.world import WorldFrame
 from moisst_ns.rig.geometry import (
     ReferenceTrajectory,
     calibrated_extrinsic,
@@ -54,8 +55,17 @@ class RigData:
     """Time origin, seconds (the first trajectory stamp): all relative times are ``stamp - t0``."""
     ground_truth: Optional[Calibration] = None
     """True calibration when the dataset ships ground_truth.json (for metrics only, never optimised against)."""
-    extra: Dict[str, object] = field(default_factory=dict)
-    """Room for modality-specific data (e.g. LiDAR scans)."""
+    dataset_priors: Optional[Calibration] = None
+    """rig.json's priors when the run started from others (``dataparser.prior_calibration``: the LiDAR-first
+    stage's estimate); None when ``prior_extrinsics`` are rig.json's."""
+    rig: Optional[Rig] = None
+    """The loaded dataset (frames and files: the datamanager reads the LiDAR scans from it, not rig.json again)."""
+    world: Optional[WorldFrame] = None
+    """The normalisation into nerfstudio's model frame (set by the dataparser)."""
+    frame_sensor_index: Optional[np.ndarray] = None
+    """(F,) sensor index of every training camera frame, in the dataparser's camera order (set by the dataparser)."""
+    frame_stamps: Optional[np.ndarray] = None
+    """(F,) own-clock stamp of every training camera frame, seconds since ``t0`` (set by the dataparser)."""
 
     @classmethod
     def from_rig(cls, rig: Rig, ground_truth: Optional[Calibration] = None) -> "RigData":
@@ -71,6 +81,7 @@ class RigData:
             trajectory_quats_xyzw=rig.trajectory_quats_xyzw,
             t0=float(rig.trajectory_stamps[0]),
             ground_truth=ground_truth,
+            rig=rig,
         )
 
     def trajectory(self) -> ReferenceTrajectory:
@@ -101,10 +112,6 @@ class RigCalibration(nn.Module):
         self.rotvec = nn.Parameter(torch.zeros(num, 3))
         self.translation = nn.Parameter(torch.zeros(num, 3))
         self.time_offset = nn.Parameter(torch.zeros(num))
-
-    @property
-    def num_sensors(self) -> int:
-        return len(self.data.sensor_names)
 
     def _masked(self, param: Tensor) -> Tensor:
         mask = self.trainable.to(param.dtype)

@@ -93,9 +93,6 @@ class ReferenceTrajectory:
             t0=t0,
         )
 
-    def to(self, device) -> "ReferenceTrajectory":
-        return ReferenceTrajectory(self.times.to(device), self.rotations.to(device), self.translations.to(device), self.t0)
-
     def __call__(self, t: Float[Tensor, "*batch"]) -> Float[Tensor, "*batch 4 4"]:
         """``T_r(t)``, paper eq. 1 (see ``interpolate_trajectory``)."""
         return interpolate_trajectory(self.times, self.rotations, self.translations, t)

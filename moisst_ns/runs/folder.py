@@ -157,7 +157,8 @@ def open_run(config_path: Path) -> Tuple[Any, Any, int, Rig]:
 
 
 def prior_calibration(data) -> Calibration:
-    """The priors the run started from, as a calibration.
+    """The dataset's priors (rig.json's), as a calibration: what "change from the prior" and "errors before" mean
+    to a user, also when the NeRF started from other priors (the LiDAR-first stage's estimate).
 
     Args:
         data: the run's ``RigData``.
@@ -165,6 +166,8 @@ def prior_calibration(data) -> Calibration:
     Returns:
         Its prior extrinsics and time offsets.
     """
+    if getattr(data, "dataset_priors", None) is not None:
+        return data.dataset_priors
     names = data.sensor_names
     return Calibration(
         names[data.reference_index],

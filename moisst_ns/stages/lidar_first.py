@@ -242,6 +242,9 @@ def find_correspondences(traj: Trajectory, ext: Extrinsic, scans: ScanSet, pairs
         tgt = found.numpy()[:, 0].astype(np.int64) + part.start
         keep = (dist2.numpy()[:, 0] < radius * radius) & scans.planar[tgt]
         src_all.append(sources[keep]), tgt_all.append(tgt[keep])
+    if not src_all:
+        empty = np.zeros(0, dtype=np.int64)
+        return Correspondences(empty, empty, np.zeros((0, 3)), np.zeros(0), candidates)
     src, tgt = np.concatenate(src_all), np.concatenate(tgt_all)
     rot_b, _, _, _ = trajectory_at(traj, scans.times[tgt], ext.time_offset)
     rot_a, _, _, _ = trajectory_at(traj, scans.times[src], ext.time_offset)
@@ -311,7 +314,7 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     for outer in range(config.max_outer):
         radius = max(config.radius_end, config.radius_start * 0.6**outer)
         reach = config.start_baseline * 2.0**outer
-        active = pairs[baselines <= reach]
+        active = pairs[(baselines <= reach) | (pairs[:, 1] - pairs[:, 0] <= 2)]  # neighbours always pair
         corr = find_correspondences(traj, ext, scans, active, radius, config)
         if outer == 0 and len(corr.src) < max(100, 0.02 * corr.candidates):
             raise LidarFirstError(

@@ -1,0 +1,309 @@
+"""Readers of KITTI-360's download layout (calibration text files, MEI fisheye YAML, poses, timestamps), each
+failing with a one-line ``Kitti360Error`` naming the file and the key. Used by ``moisst_ns.datasets.kitti360``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Sequence, Tuple
+
+import numpy as np
+
+from moisst_ns.rig.format import RigFormatError
+
+PERSPECTIVE = ("image_00", "image_01")
+"""The rectified perspective cameras."""
+
+
+class Kitti360Error(RigFormatError):
+    """A KITTI-360 folder is incomplete or malformed; one line naming the file, the field and the problem."""
+
+
+def _rigid(values: Sequence[float]) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :4] = np.asarray(values, dtype=np.float64).reshape(3, 4)
+    return pose
+
+
+def _inv(pose: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = pose[:3, :3].T
+    out[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
+    return out
+
+
+def _rot4(rotation: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = rotation
+    return out
+
+
+def _check_rotation(rotation: np.ndarray, file: Path, key: str, tol: float = 1e-4) -> None:
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=tol) or np.linalg.det(rotation) < 0:
+        raise Kitti360Error(file, key, "not a rotation (R R^T != I or det < 0)")
+
+
+def _require(path: Path, what: str) -> Path:
+    if not path.exists():
+        raise Kitti360Error(path, what, "not found (see docs/kitti360.md for the folders to download)")
+    return path
+
+
+def read_key_values(path: Path) -> Dict[str, np.ndarray]:
+    """Read a ``key: v1 v2 ...`` text file (``calib_cam_to_pose.txt``, ``perspective.txt``).
+
+    Returns:
+        key -> float64 values; lines whose values are not all numbers (``calib_time: 09-Jan-2012 ...``) are skipped.
+    """
+    _require(path, "(file)")
+    out: Dict[str, np.ndarray] = {}
+    for line in path.read_text().splitlines():
+        if ":" not in line:
+            continue
+        key, _, rest = line.partition(":")
+        try:
+            out[key.strip()] = np.array([float(v) for v in rest.split()], dtype=np.float64)
+        except ValueError:
+            continue
+    return out
+
+
+def _values(table: Dict[str, np.ndarray], key: str, count: int, file: Path) -> np.ndarray:
+    if key not in table:
+        raise Kitti360Error(file, key, "missing")
+    if table[key].size != count:
+        raise Kitti360Error(file, key, f"expected {count} numbers, got {table[key].size}")
+    if not np.all(np.isfinite(table[key])):
+        raise Kitti360Error(file, key, "contains NaN or inf")
+    return table[key]
+
+
+def read_cam_to_pose(path: Path, cameras: Sequence[str]) -> Dict[str, np.ndarray]:
+    """``calib_cam_to_pose.txt`` -> {camera: pose_T_cam (4x4)}."""
+    table = read_key_values(path)
+    out = {}
+    for cam in cameras:
+        pose = _rigid(_values(table, cam, 12, path))
+        _check_rotation(pose[:3, :3], path, cam)
+        out[cam] = pose
+    return out
+
+
+def read_cam_to_velo(path: Path) -> np.ndarray:
+    """``calib_cam_to_velo.txt`` (one line of 12 numbers) -> velo_T_cam0 (4x4)."""
+    _require(path, "(file)")
+    numbers = path.read_text().split()
+    try:
+        values = [float(v) for v in numbers]
+    except ValueError:
+        raise Kitti360Error(path, "cam0 -> velo", "not a number") from None
+    if len(values) != 12:
+        raise Kitti360Error(path, "cam0 -> velo", f"expected 12 numbers (3x4), got {len(values)}")
+    pose = _rigid(values)
+    _check_rotation(pose[:3, :3], path, "cam0 -> velo")
+    return pose
+
+
+@dataclass
+class Perspective:
+    """Rectified pinhole camera from ``perspective.txt``."""
+
+    K: np.ndarray
+    """3x3 intrinsics of ``P_rect_0X`` (KITTI pixel convention: centre of pixel 0 at 0)."""
+    R_rect: np.ndarray
+    """3x3 ``R_rect_0X``: unrectified -> rectified camera frame."""
+    size: Tuple[int, int]
+    """(width, height) of ``S_rect_0X``."""
+
+
+def read_perspective(path: Path, cameras: Sequence[str]) -> Dict[str, Perspective]:
+    """``perspective.txt`` -> {image_0X: Perspective} for the perspective cameras among ``cameras``."""
+    table = read_key_values(path)
+    out = {}
+    for cam in cameras:
+        if cam not in PERSPECTIVE:
+            continue
+        n = cam[-2:]
+        P = _values(table, f"P_rect_{n}", 12, path).reshape(3, 4)
+        R = _values(table, f"R_rect_{n}", 9, path).reshape(3, 3)
+        _check_rotation(R, path, f"R_rect_{n}")
+        w, h = _values(table, f"S_rect_{n}", 2, path)
+        if w <= 0 or h <= 0 or w != int(w) or h != int(h):
+            raise Kitti360Error(path, f"S_rect_{n}", f"expected a positive integer width and height, got {w} {h}")
+        if P[0, 0] <= 0 or P[1, 1] <= 0:
+            raise Kitti360Error(path, f"P_rect_{n}", "focal lengths must be > 0")
+        out[cam] = Perspective(K=P[:, :3].copy(), R_rect=R, size=(int(w), int(h)))
+    return out
+
+
+@dataclass
+class MeiCamera:
+    """The MEI unified omnidirectional camera model (KITTI-360 ``image_02.yaml`` / ``image_03.yaml``).
+
+    A point ``X`` in the camera frame (OpenCV axes) is put on the unit sphere, projected from ``(0, 0, -xi)``
+    onto the normalised plane, distorted radially (k1, k2) and tangentially (p1, p2), then scaled by
+    (gamma1, gamma2) and shifted by (u0, v0) (pixel centre at integer coordinates, as OpenCV).
+    """
+
+    xi: float
+    k1: float
+    k2: float
+    p1: float
+    p2: float
+    gamma1: float
+    gamma2: float
+    u0: float
+    v0: float
+    width: int
+    height: int
+
+    def project(self, points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Project camera-frame points.
+
+        Args:
+            points: (N, 3) points or directions in the camera frame.
+
+        Returns:
+            ((N, 2) pixel coordinates u, v (pixel centres at integers), (N,) mask of points the model can image).
+        """
+        p = np.asarray(points, dtype=np.float64)
+        s = p / np.linalg.norm(p, axis=-1, keepdims=True)
+        denom = s[:, 2] + self.xi
+        valid = denom > 1e-9
+        denom = np.where(valid, denom, 1.0)
+        x, y = s[:, 0] / denom, s[:, 1] / denom
+        r2 = x * x + y * y
+        radial = 1.0 + self.k1 * r2 + self.k2 * r2 * r2
+        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
+        return np.stack([self.gamma1 * xd + self.u0, self.gamma2 * yd + self.v0], axis=-1), valid
+
+    def unproject(self, pixels: np.ndarray) -> np.ndarray:
+        """Unit ray directions of pixels (inverse of ``project``; distortion inverted with OpenCV's iteration).
+
+        Args:
+            pixels: (N, 2) pixel coordinates u, v (pixel centres at integers).
+
+        Returns:
+            (N, 3) unit directions in the camera frame.
+        """
+        import cv2
+
+        uv = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
+        K = np.array([[self.gamma1, 0.0, self.u0], [0.0, self.gamma2, self.v0], [0.0, 0.0, 1.0]])
+        dist = np.array([self.k1, self.k2, self.p1, self.p2])
+        m = cv2.undistortPointsIter(uv, K, dist, None, None, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+        m = m.reshape(-1, 2)
+        r2 = (m * m).sum(axis=1)
+        factor = (self.xi + np.sqrt(1.0 + (1.0 - self.xi**2) * r2)) / (1.0 + r2)
+        d = np.stack([factor * m[:, 0], factor * m[:, 1], factor - self.xi], axis=1)
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+MEI_KEYS = {
+    "mirror_parameters": ("xi",),
+    "distortion_parameters": ("k1", "k2", "p1", "p2"),
+    "projection_parameters": ("gamma1", "gamma2", "u0", "v0"),
+}
+
+
+def read_mei_yaml(path: Path) -> MeiCamera:
+    """Read an ``image_0X.yaml`` MEI fisheye calibration (OpenCV FileStorage YAML starting with ``%YAML:1.0``)."""
+    import yaml
+
+    _require(path, "(file)")
+    text = path.read_text()
+    if text.startswith("%YAML"):
+        text = text.split("\n", 1)[1] if "\n" in text else ""
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise Kitti360Error(path, "(yaml)", f"not valid YAML ({str(err).splitlines()[0]})") from None
+    if not isinstance(raw, dict):
+        raise Kitti360Error(path, "(top level)", "expected a mapping")
+    model = raw.get("model_type", "MEI")
+    if str(model).upper() != "MEI":
+        raise Kitti360Error(path, "model_type", f"unsupported fisheye model {model!r} (only MEI)")
+    values: Dict[str, float] = {}
+    for group, keys in MEI_KEYS.items():
+        section = raw.get(group)
+        if not isinstance(section, dict):
+            raise Kitti360Error(path, group, "missing")
+        for key in keys:
+            value = section.get(key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+                raise Kitti360Error(path, f"{group}.{key}", f"missing or not a finite number ({value!r})")
+            values[key] = float(value)
+    for key in ("image_width", "image_height"):
+        value = raw.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            raise Kitti360Error(path, key, f"must be a positive integer, got {value!r}")
+    if values["gamma1"] <= 0 or values["gamma2"] <= 0:
+        raise Kitti360Error(path, "projection_parameters.gamma1", "gamma1 and gamma2 must be > 0")
+    return MeiCamera(width=raw["image_width"], height=raw["image_height"], **values)
+
+
+def read_indexed_poses(path: Path, columns: int) -> Tuple[np.ndarray, np.ndarray]:
+    """``poses.txt`` (index + 12 numbers) or ``cam0_to_world.txt`` (index + 16 numbers).
+
+    Returns:
+        (frame indices (K,), poses (K, 4, 4)), sorted by index.
+    """
+    _require(path, "(file)")
+    indices, poses = [], []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        parts = line.split()
+        if not parts:
+            continue
+        if len(parts) != columns + 1:
+            raise Kitti360Error(path, f"line {lineno}", f"expected a frame index and {columns} numbers, got {len(parts)} values")
+        try:
+            index = int(parts[0])
+            values = np.array([float(v) for v in parts[1:]])
+        except ValueError:
+            raise Kitti360Error(path, f"line {lineno}", "not a number") from None
+        if not np.all(np.isfinite(values)):
+            raise Kitti360Error(path, f"line {lineno}", "contains NaN or inf")
+        pose = np.eye(4)
+        pose[: columns // 4] = values.reshape(columns // 4, 4)
+        _check_rotation(pose[:3, :3], path, f"line {lineno}", tol=1e-3)
+        indices.append(index)
+        poses.append(pose)
+    if not indices:
+        raise Kitti360Error(path, "(file)", "no poses")
+    order = np.argsort(indices, kind="stable")
+    idx = np.asarray(indices)[order]
+    if np.any(np.diff(idx) == 0):
+        raise Kitti360Error(path, "frame index", f"frame {int(idx[np.argmax(np.diff(idx) == 0)])} appears twice")
+    return idx, np.stack(poses)[order]
+
+
+def read_timestamps(path: Path) -> np.ndarray:
+    """``timestamps.txt``: one ``YYYY-MM-DD HH:MM:SS.nnnnnnnnn`` per frame.
+
+    Returns:
+        (N,) int64 nanoseconds since the Unix epoch (exact).
+    """
+    _require(path, "(file)")
+    stamps = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        text = line.strip()
+        if not text:
+            continue
+        try:
+            stamps.append(np.datetime64(text.replace(" ", "T"), "ns").astype(np.int64))
+        except ValueError:
+            raise Kitti360Error(path, f"line {lineno}", f"not a 'YYYY-MM-DD HH:MM:SS.nnnnnnnnn' timestamp: {text!r}") from None
+    if not stamps:
+        raise Kitti360Error(path, "(file)", "no timestamps")
+    out = np.asarray(stamps, dtype=np.int64)
+    if np.any(np.diff(out) <= 0):
+        bad = int(np.argmax(np.diff(out) <= 0)) + 2
+        raise Kitti360Error(path, f"line {bad}", "timestamps must be strictly increasing")
+    return out
+
+
+def format_timestamp(ns: int) -> str:
+    """Inverse of one ``read_timestamps`` line."""
+    text = str(np.datetime64(int(ns), "ns"))
+    return text.replace("T", " ")
