@@ -237,7 +237,7 @@ def test_moisst_eval_history_mean_and_std_are_numpys(run):
         stats = json.loads(result.stdout)
         tails = read_csv_tail(history, last)
         assert set(stats) == set(tails) == {"cam_front_right", "cam_left", "lidar"}
-        stage_rows = len(json.loads((run["out"] / "lidar_first" / "lidar_first.json").read_text())["sensors"]["lidar"]["history"])
+        stage_rows = len(json.loads((run["config"].parents[2] / "lidar_first" / "lidar_first.json").read_text())["sensors"]["lidar"]["history"])
         for name, rows in tails.items():
             logged = 4 + (stage_rows if name == "lidar" else 0)  # steps 0, 3, 6, 9 (and the LiDAR-first stage's -N..-1)
             assert stats[name]["rows"] == len(rows) == min(last, logged)
