@@ -70,6 +70,10 @@ class CalibrateConfig:
     depth_loss_per_m2: Optional[float] = None
     """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
     method's normalised-depth loss (the paper's) when omitted."""
+    lidar_scene: bool = False
+    """After the LiDAR-first stage, let the calibrated LiDARs' metric depth (``--depth-loss-per-m2``, default 5 per
+    m^2) shape the scene from step 0 over their whole scan (an experiment of the metric-scene issue: on the
+    50-frame rig it helped the side camera's translation and hurt its rotation; docs/method.md)."""
     lidar_first: bool = True
     """Calibrate every LiDAR from its own scans before the NeRF (``moisst-lidar-calibrate``, into OUT/lidar_first);
     the NeRF starts from that estimate, holds the LiDARs there and lets their depth shape the scene.
@@ -180,9 +184,11 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     if stage is not None:
         config.pipeline.datamanager.dataparser.prior_calibration = out / "lidar_first" / "calibration.json"
         model.camera_optimizer.frozen_sensors = tuple(stage["sensors"])
-        lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
-        if not cfg.depth_loss:
-            model.depth_loss_mult = 0.0
+        model.registration_sensors = "cameras"  # the calibrated LiDARs shape the scene while the cameras register
+        if cfg.lidar_scene:
+            lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
+            if not cfg.depth_loss:
+                model.depth_loss_mult = 0.0
         config.save_config()
         if not cfg.resume:
             history = config.get_base_dir() / HISTORY_FILE

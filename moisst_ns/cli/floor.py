@@ -54,9 +54,9 @@ class FloorConfig:
     depth_loss_per_m2: Optional[float] = None
     """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
     method's normalised-depth loss (the paper's) when omitted."""
-    lidar_scene: bool = True
-    """Train the scene as moisst-calibrate does once its LiDAR-first stage ran (metric LiDAR depth from step 0 over
-    the whole scan; ``--depth-loss-per-m2`` or the pipeline's default weight); --no-lidar-scene: the paper's."""
+    lidar_scene: bool = False
+    """Train the scene as ``moisst-calibrate --lidar-scene`` does (metric LiDAR depth from step 0 over the whole
+    scan; ``--depth-loss-per-m2`` or the pipeline's default weight of 5 per m^2)."""
 
 
 def floor_errors(rows: List[Dict[str, float]], average_last: int) -> Dict[str, Dict[str, float]]:
