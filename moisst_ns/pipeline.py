@@ -70,6 +70,9 @@ class CalibrateConfig:
     depth_loss_per_m2: Optional[float] = None
     """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
     method's normalised-depth loss (the paper's) when omitted."""
+    registration_sensors: Optional[Literal["cameras", "all"]] = None
+    """Override which sensors register against a detached scene during the registration phase: ``cameras`` (the
+    LiDARs' depth shapes the scene; the default after the LiDAR-first stage) or ``all`` (the method's default)."""
     lidar_scene: bool = False
     """After the LiDAR-first stage, let the calibrated LiDARs' metric depth (``--depth-loss-per-m2``, default 5 per
     m^2) shape the scene from step 0 over their whole scan (an experiment of the metric-scene issue: on the
@@ -185,6 +188,8 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         config.pipeline.datamanager.dataparser.prior_calibration = out / "lidar_first" / "calibration.json"
         model.camera_optimizer.frozen_sensors = tuple(stage["sensors"])
         model.registration_sensors = "cameras"  # the calibrated LiDARs shape the scene while the cameras register
+        if cfg.registration_sensors is not None:
+            model.registration_sensors = cfg.registration_sensors
         if cfg.lidar_scene:
             lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
             if not cfg.depth_loss:
