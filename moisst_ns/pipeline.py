@@ -72,7 +72,8 @@ class CalibrateConfig:
     method's normalised-depth loss (the paper's) when omitted."""
     registration_sensors: Optional[Literal["cameras", "all"]] = None
     """Override which sensors register against a detached scene during the registration phase: ``cameras`` (the
-    LiDARs' depth shapes the scene; the default after the LiDAR-first stage) or ``all`` (the method's default)."""
+    calibrated LiDARs' depth shapes the scene while the cameras register) or ``all`` (the method's default; measured
+    better for the forward camera, worse for the side camera: docs/method.md)."""
     lidar_scene: bool = False
     """After the LiDAR-first stage, let the calibrated LiDARs' metric depth (``--depth-loss-per-m2``, default 5 per
     m^2) shape the scene from step 0 over their whole scan (an experiment of the metric-scene issue: on the
@@ -187,7 +188,6 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     if stage is not None:
         config.pipeline.datamanager.dataparser.prior_calibration = out / "lidar_first" / "calibration.json"
         model.camera_optimizer.frozen_sensors = tuple(stage["sensors"])
-        model.registration_sensors = "cameras"  # the calibrated LiDARs shape the scene while the cameras register
         if cfg.registration_sensors is not None:
             model.registration_sensors = cfg.registration_sensors
         if cfg.lidar_scene:
