@@ -17,6 +17,7 @@ from typing import Dict, List, Literal, Optional, Tuple, Type
 from unittest import mock
 
 import torch
+from jaxtyping import Bool, Float
 from torch import Tensor
 from torch.nn import Parameter
 
@@ -29,11 +30,32 @@ from moisst_ns.runs.history import append_history
 from moisst_ns.viewer_panel import CalibrationPanel
 from moisst_ns.compat import _NoLPIPS
 from moisst_ns.data.layout import RayLayout
-from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss
+from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss, line_of_sight_loss
 from moisst_ns.schedules import rescale_schedules
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
 
 
+
+
+def guided_far_planes(
+    nears: Float[Tensor, "num_rays 1"], fars: Float[Tensor, "num_rays 1"], ranges: Float[Tensor, "num_rays 1"],
+    is_lidar: Bool[Tensor, "num_rays 1"], margin: float,
+) -> Float[Tensor, "num_rays 1"]:
+    """Far planes of LiDAR-guided sampling: a LiDAR ray ends ``margin`` behind its measured range (never beyond its
+    own far plane, never before its near plane); camera rays keep theirs.
+
+    Args:
+        nears: near plane of each ray, model units.
+        fars: far plane of each ray, model units.
+        ranges: measured range of each LiDAR ray (anything for camera rays), model units.
+        is_lidar: which rays are LiDAR rays.
+        margin: how far behind the measured range a LiDAR ray still samples, model units.
+
+    Returns:
+        The new far planes.
+    """
+    guided = torch.maximum(torch.minimum(fars, (ranges + margin).to(fars)), nears + 1e-3)
+    return torch.where(is_lidar, guided, fars)
 
 
 def hash_level_weights(progress: float, num_levels: int, start_levels: float) -> Tensor:
@@ -85,6 +107,16 @@ class MoisstModelConfig(NerfactoModelConfig):
     depth_loss_units: Literal["model", "metric"] = "model"
     """Units of the depth loss: ``model`` (the paper's, normalised depths) or ``metric`` (the depth error in metres,
     so ``depth_loss_mult`` is per m^2 on every rig)."""
+    line_of_sight_mult: float = 0.0
+    """Weight of Urban Radiance Fields' line-of-sight loss on LiDAR rays (``losses.line_of_sight_loss``: the
+    termination mass must lie within ``line_of_sight_margin_m`` of the measured range, the space before it empty);
+    it applies with the depth loss. 0 disables it (the paper has none)."""
+    line_of_sight_margin_m: float = 0.2
+    """Half width of the surface band of the line-of-sight loss, metres."""
+    lidar_far_margin_m: float = 0.0
+    """LiDAR-guided sampling: a LiDAR ray's far plane is set this far behind its measured range, so the proposal
+    samplers spend their samples between the LiDAR and the surface it measured instead of out to the scene's far
+    plane. 0 disables it (every ray samples to ``far_plane``)."""
     depth_loss_start: int = 0
     """Step from which the depth loss applies (paper: after 2 epochs of colour-only training)."""
     dssim_loss_mult: float = 0.1
@@ -239,7 +271,17 @@ class MoisstModel(NerfactoModel):
             sensor = torch.where(is_lidar[:, 0], ray_bundle.metadata["lidar_sensor"][:, 0].to(sensor), sensor)
         return sensor
 
+    def _guide_lidar_samples(self, ray_bundle) -> None:
+        """LiDAR rays end ``lidar_far_margin_m`` behind their measured range (``lidar_point`` is metric)."""
+        is_lidar = ray_bundle.metadata.get("is_lidar")
+        if self.config.lidar_far_margin_m <= 0 or is_lidar is None or ray_bundle.fars is None:
+            return
+        scale = float(self.camera_optimizer.world_scale)
+        ranges = ray_bundle.metadata["lidar_point"].norm(dim=-1, keepdim=True) * scale
+        ray_bundle.fars = guided_far_planes(ray_bundle.nears, ray_bundle.fars, ranges, is_lidar, self.config.lidar_far_margin_m * scale)
+
     def get_outputs(self, ray_bundle):
+        self._guide_lidar_samples(ray_bundle)
         registering = self.training and self._step < self.config.registration_steps and self._reference_is_camera
         if not registering or self._detached_pass or self.camera_optimizer.rig is None:
             return super().get_outputs(ray_bundle)
@@ -321,6 +363,12 @@ class MoisstModel(NerfactoModel):
             scale = float(self.camera_optimizer.world_scale) if self.config.depth_loss_units == "metric" else 1.0
             loss_dict["depth_loss"] = ramp * self.config.depth_loss_mult * lidar_depth_loss(
                 outputs["expected_depth"][lidar, 0], batch["lidar_range"], units_per_metre=scale)
+            full_batch = "weights_list" in outputs and outputs["weights_list"][-1].shape[0] == outputs["rgb"].shape[0]
+            if self.config.line_of_sight_mult > 0 and full_batch:  # (a registration split keeps only its own samples)
+                samples = outputs["ray_samples_list"][-1][lidar]
+                loss_dict["line_of_sight_loss"] = ramp * self.config.line_of_sight_mult * line_of_sight_loss(
+                    outputs["weights_list"][-1][lidar], samples.frustums.starts, samples.frustums.ends,
+                    batch["lidar_range"], self.config.line_of_sight_margin_m * float(self.camera_optimizer.world_scale))
         if self.training:
             for name, value in loss_dict.items():
                 if not bool(torch.isfinite(value).all()):

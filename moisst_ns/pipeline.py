@@ -74,6 +74,12 @@ class CalibrateConfig:
     """Override which sensors register against a detached scene during the registration phase: ``cameras`` (the
     calibrated LiDARs' depth shapes the scene while the cameras register) or ``all`` (the method's default; measured
     better for the forward camera, worse for the side camera: docs/method.md)."""
+    line_of_sight_mult: Optional[float] = None
+    """Weight of the line-of-sight loss on LiDAR rays (Urban Radiance Fields: the density along each LiDAR ray
+    must be empty before the measured range and concentrated at it); the method's default when omitted, 0: off."""
+    lidar_far_margin: Optional[float] = None
+    """LiDAR-guided sampling: end each LiDAR ray this many metres behind its measured range (samples concentrate
+    in front of the surface); the method's default when omitted, 0: off."""
     lidar_scene: bool = False
     """After the LiDAR-first stage, let the calibrated LiDARs' metric depth (``--depth-loss-per-m2``, default 5 per
     m^2) shape the scene from step 0 over their whole scan (an experiment of the metric-scene issue: on the
@@ -149,8 +155,12 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     model = config.pipeline.model
     if cfg.depth_loss_per_m2 is not None:
         model.depth_loss_units, model.depth_loss_mult = "metric", cfg.depth_loss_per_m2
+    if cfg.line_of_sight_mult is not None:
+        model.line_of_sight_mult = cfg.line_of_sight_mult
+    if cfg.lidar_far_margin is not None:
+        model.lidar_far_margin_m = cfg.lidar_far_margin
     if not cfg.depth_loss:
-        model.depth_loss_mult = 0.0
+        model.depth_loss_mult = model.line_of_sight_mult = 0.0
     if not cfg.dssim_loss:
         model.dssim_loss_mult = 0.0
     if not cfg.depth_smoothness_loss:

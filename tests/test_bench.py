@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from moisst_ns.bench import REPO, BenchConfig, BenchError, load_scenarios, pooled, run_bench, time_to_target
+from moisst_ns.bench import REPO, BenchConfig, BenchError, load_scenarios, packaged_scenarios, pooled, run_bench, time_to_target
 
 MICRO = """
 name = "micro"
@@ -19,6 +19,7 @@ seeds = [[0, "street"], [1, "plaza"]]
 target = { translation_cm = 1.0, rotation_deg = 0.05, time_ms = 0.5 }
 timing = [["moisst", 1]]
 baseline = { steps = 4, seeds = "first" }
+floor = { steps = 6, register_steps = 2, depth_rays = 200, seeds = "first" }
 
 [[case]]
 id = "combined"
@@ -43,13 +44,13 @@ seeds = "first"
 
 
 def test_shipped_scenarios_cover_the_paper_protocol():
-    quick = load_scenarios(REPO / "configs" / "bench-quick.toml")
-    full = load_scenarios(REPO / "configs" / "bench-full.toml")
+    quick = load_scenarios(packaged_scenarios("quick"))
+    full = load_scenarios(packaged_scenarios("full"))
     for raw in (quick, full):
         tables = {t.partition(":")[0] for c in raw["case"] for t in c["tables"]}
         assert tables == {"I", "II", "III", "IV", "V", "VII"}
         assert {layout for _, layout in raw["seeds"]} == {"street", "plaza"}
-        assert raw["baseline"] and raw["timing"]
+        assert raw["baseline"] and raw["timing"] and raw["floor"]
     cells = {(c["perturb"]["rotation"], c["perturb"]["translation"]) for c in full["case"] if any(t.startswith("IV") for t in c["tables"])}
     assert cells == {(2.0, 0.0), (5.0, 0.0), (10.0, 0.0), (15.0, 0.0), (0.0, 0.2), (0.0, 0.5), (0.0, 1.0)}
     assert {c["perturb"]["time"] for c in full["case"] if any(t.startswith("II:") for t in c["tables"])} == {0.1, 0.2}
@@ -66,6 +67,8 @@ def test_shipped_scenarios_cover_the_paper_protocol():
         (lambda s: s.replace('id = "rotation-10"', 'id = "combined"'), "case[1].id: missing or repeated"),
         (lambda s: s + "\n[[case]\n", "(toml)"),
         (lambda s: s.replace('optimise = "temporal"', 'optimise = "temporal"\npatch_size = 0'), "case[2].patch_size: must be a positive integer"),
+        (lambda s: s.replace('register_steps = 2', 'register_steps = 0'), "floor.register_steps: must be a positive integer"),
+        (lambda s: s.replace('register_steps = 2', 'register_steps = 2, scene = 3'), "floor.scene: unknown key"),
     ],
 )
 def test_bad_scenario_file_gets_one_line_error(tmp_path, edit, message):
@@ -100,7 +103,7 @@ def test_micro_bench_fills_every_section(tmp_path):
     before = (REPO / "docs" / "benchmarks.md").read_bytes() if (REPO / "docs" / "benchmarks.md").exists() else None
     result = run_bench(BenchConfig(scenarios=path, out=tmp_path / "out"))
     md = (tmp_path / "out" / "benchmarks.md").read_text()
-    for heading in ("Table III", "Table IV", "Table V", "Table VI", "Table VII", "Speed and cost"):
+    for heading in ("Table III", "Table IV", "Table V", "Table VI", "Table VII", "Speed and cost", "## Floor"):
         assert heading in md, heading
     saved = json.loads((tmp_path / "out" / "bench.json").read_text())
     combined = next(c for c in saved["cases"] if c["id"] == "combined")
@@ -119,6 +122,9 @@ def test_micro_bench_fills_every_section(tmp_path):
     assert timing["method_run"] == ["moisst", "moisst"]
     assert timing["moisst_s"] > 0 and timing["nerfacto_s"] > 0 and timing["ratio"] == pytest.approx(timing["moisst_s"] / timing["nerfacto_s"])
     assert set(result["baseline"]["frame_errors"]) == {"cam_front_right", "cam_left"}
+    (floor,) = result["floor"]  # seeds = "first": one rig
+    assert (floor["layout"], floor["seed"], floor["scene_steps"], floor["register_steps"]) == ("street", 0, 6, 2)
+    assert set(floor["floor"]) == {"cam_front_right", "cam_left", "lidar"} and floor["depth"]["camera_rays"] > 0
     assert (tmp_path / "out" / "bench_error_vs_time.png").stat().st_size > 1000
     after = (REPO / "docs" / "benchmarks.md").read_bytes() if (REPO / "docs" / "benchmarks.md").exists() else None
     assert after == before  # --docs not given: the repository is not touched

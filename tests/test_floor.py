@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from helpers import tree_hash
-from moisst_ns.cli.floor import FloorConfig, floor_errors, run_floor
+from moisst_ns.floor import FloorConfig, FloorError, camera_depth_errors, floor_errors, run_floor
 from moisst_ns.rig.calibration import RigCalibration, RigData
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.datasets.synth import SynthConfig, make_rig
@@ -46,10 +46,16 @@ def test_floor_run(rig, tmp_path):
     """The scene trains at the truth, registration starts exactly there and moves the calibration; the dataset is not written."""
     digest = tree_hash(rig)
     out = tmp_path / "floor"
-    floor = run_floor(FloorConfig(dataset=rig, output_dir=out, scene_steps=40, register_steps=10, log_every=5, average_last=2, threads=2, seed=0))
+    returned = run_floor(FloorConfig(dataset=rig, output_dir=out, scene_steps=40, register_steps=10, log_every=5,
+                                     average_last=2, threads=2, seed=0, depth_check_rays=500))
+    floor = returned["floor"]
     assert tree_hash(rig) == digest
     result = json.loads((out / "floor.json").read_text())
+    assert result == json.loads(json.dumps(returned))
     assert set(result["floor"]) == {"cam_front_right", "cam_left", "lidar"} == set(floor)
+    depth = result["depth"]  # a 40-step scene is far from the surfaces, but every figure is measured
+    assert depth["camera_rays"] > 0 and depth["lidar_rays"] > 0
+    assert 0.0 < depth["median_abs_m"] < 100.0 and 0.0 < depth["lidar_median_abs_m"] < 100.0
     assert result["scene_steps"] == 40 and result["register_steps"] == 10
     with (out / "floor_history.csv").open() as handle:
         rows = list(csv.DictReader(handle))
@@ -68,14 +74,36 @@ def test_floor_needs_ground_truth(rig, tmp_path, capsys):
     copy = tmp_path / "no_truth"
     shutil.copytree(rig, copy)
     (copy / "ground_truth.json").unlink()
-    with pytest.raises(SystemExit):
+    with pytest.raises(FloorError, match="ground_truth.json: not found"):
         run_floor(FloorConfig(dataset=copy, output_dir=tmp_path / "o"))
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("moisst-floor: error:") and "ground_truth.json: not found" in err and "\n" not in err
 
 
-def test_floor_refuses_output_inside_dataset(rig, capsys):
-    with pytest.raises(SystemExit):
+def test_floor_refuses_output_inside_dataset(rig):
+    with pytest.raises(FloorError, match="must not be inside the dataset folder"):
         run_floor(FloorConfig(dataset=rig, output_dir=rig / "out"))
-    assert "must not be inside the dataset folder" in capsys.readouterr().err
     assert not (rig / "out").exists()
+
+
+def test_floor_cli_error_is_one_line(rig, tmp_path):
+    """moisst-floor turns a missing ground truth into one line on stderr and exit code 2."""
+    import subprocess
+    import sys
+
+    copy = tmp_path / "no_truth"
+    shutil.copytree(rig, copy)
+    (copy / "ground_truth.json").unlink()
+    proc = subprocess.run([sys.executable, "-m", "moisst_ns.cli.floor", str(copy), "--output-dir", str(tmp_path / "o")],
+                          capture_output=True, text=True)
+    assert proc.returncode != 0
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("moisst-floor: error:") and "ground_truth.json: not found" in last
+
+
+def test_camera_depth_errors_only_count_rays_in_the_lidar_field():
+    rendered = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    true = np.array([1.5, 2.0, np.inf, 10.0, 4.0])
+    field = np.array([True, True, True, False, True])
+    out = camera_depth_errors(rendered, true, field)
+    assert out["camera_rays"] == 3 and out["median_abs_m"] == 0.5
+    assert out["p90_abs_m"] == pytest.approx(np.percentile([0.5, 0.0, 1.0], 90))
+    assert camera_depth_errors(rendered, true, np.zeros(5, dtype=bool))["camera_rays"] == 0

@@ -28,7 +28,6 @@ from moisst_ns.rig.format import (
     load_rig,
     load_tum,
     rig_to_json,
-    write_rig_json,
     write_tum,
 )
 from moisst_ns.datasets.synth import SynthConfig, make_rig
@@ -114,7 +113,7 @@ def test_synthetic_rig_is_valid(dataset):
 
 def test_round_trip_rig_json(dataset, rig_dir):
     rig = load_rig(dataset)
-    write_rig_json(rig, rig_dir / "rig.json")
+    (rig_dir / "rig.json").write_text(json.dumps(rig_to_json(rig), indent=1) + "\n")
     again = load_rig(rig_dir)
     assert again.reference_sensor == rig.reference_sensor
     assert again.trajectory_file == rig.trajectory_file

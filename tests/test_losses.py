@@ -33,3 +33,51 @@ def test_hash_level_release():
     assert torch.allclose(hash_level_weights(1.0, 6, 2.0), torch.ones(6))
     half = hash_level_weights(0.5, 6, 2.0)  # a = 4: levels 0-3 on, 4-5 off
     assert torch.allclose(half, torch.tensor([1.0, 1, 1, 1, 0, 0]))
+
+
+def test_line_of_sight_loss_is_zero_only_for_mass_at_the_surface():
+    from moisst_ns.losses import line_of_sight_loss
+
+    # Four unit intervals [0,1) .. [3,4); the surface at 2.5 with a 0.5 band covers [2, 3) exactly.
+    starts = torch.arange(4.0).view(1, 4, 1)
+    ends = starts + 1.0
+    z = torch.tensor([2.5])
+    at_surface = torch.tensor([0.0, 0.0, 1.0, 0.0]).view(1, 4, 1)
+    assert float(line_of_sight_loss(at_surface, starts, ends, z, 0.5)) == 0.0
+    early = torch.tensor([1.0, 0.0, 0.0, 0.0]).view(1, 4, 1)  # free space is not free: counted twice
+    assert float(line_of_sight_loss(early, starts, ends, z, 0.5)) == 2.0
+    behind = torch.tensor([0.0, 0.0, 0.0, 1.0]).view(1, 4, 1)  # terminates behind the surface: once
+    assert float(line_of_sight_loss(behind, starts, ends, z, 0.5)) == 1.0
+    nothing = torch.zeros(1, 4, 1)  # the ray passes through everything
+    assert float(line_of_sight_loss(nothing, starts, ends, z, 0.5)) == 1.0
+    # Fractional overlap: the band [2.25, 2.75) covers half of the interval [2, 3) and a quarter of [2, 3) lies before it.
+    half = torch.tensor([0.0, 0.0, 1.0, 0.0]).view(1, 4, 1)
+    assert float(line_of_sight_loss(half, starts, ends, z, 0.25)) == pytest.approx(0.25 + 0.5)
+    # Mean over rays.
+    both = torch.cat([at_surface, early])
+    assert float(line_of_sight_loss(both, torch.cat([starts, starts]), torch.cat([ends, ends]), torch.tensor([2.5, 2.5]), 0.5)) == 1.0
+
+
+def test_line_of_sight_loss_gradient_moves_mass_towards_the_surface():
+    from moisst_ns.losses import line_of_sight_loss
+
+    starts = torch.arange(8.0).view(1, 8, 1)
+    logits = torch.zeros(1, 8, 1, requires_grad=True)
+    loss = line_of_sight_loss(torch.softmax(logits, dim=1), starts, starts + 1.0, torch.tensor([5.5]), 0.5)
+    loss.backward()
+    grad = logits.grad[0, :, 0]
+    assert int(torch.argmin(grad)) == 5  # descending raises the weight of the surface's interval most
+    assert bool((grad[:5] > 0).all())  # and lowers the free space before it
+
+
+def test_guided_far_planes_end_lidar_rays_behind_their_range_only():
+    from moisst_ns.model import guided_far_planes
+
+    nears = torch.full((4, 1), 0.05)
+    fars = torch.full((4, 1), 2.0)
+    ranges = torch.tensor([[0.5], [0.5], [1.99], [0.01]])
+    is_lidar = torch.tensor([[True], [False], [True], [True]])
+    out = guided_far_planes(nears, fars, ranges, is_lidar, 0.1)
+    # LiDAR ray: range + margin; camera ray: unchanged; never beyond the far plane; never before the near plane
+    assert torch.allclose(out, torch.tensor([[0.6], [2.0], [2.0], [0.11]]))
+    assert torch.equal(guided_far_planes(nears, fars, torch.zeros(4, 1), is_lidar, 0.0)[:, 0] > nears[:, 0], torch.ones(4, dtype=torch.bool))

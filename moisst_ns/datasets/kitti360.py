@@ -52,7 +52,7 @@ from moisst_ns.datasets.kitti360_io import (
     read_perspective,
     read_timestamps,
 )
-from moisst_ns.rig.format import FORMAT, Calibration, write_tum
+from moisst_ns.rig.format import Calibration, clear_generated_dataset, rig_json, write_tum
 
 CAMERAS = ("image_00", "image_01", "image_02", "image_03")
 FISHEYE = ("image_02", "image_03")
@@ -335,11 +335,7 @@ def _prepare_out(config: Kitti360Config) -> Path:
     if out.is_dir() and any(out.iterdir()):
         if not config.overwrite:
             raise Kitti360Error(out, "--out", "exists and is not empty; pass --overwrite to replace its dataset")
-        for name in ("rig.json", "reference_poses.txt", "ground_truth.json"):
-            (out / name).unlink(missing_ok=True)
-        for name in ("images", "lidar"):
-            if (out / name).is_dir():
-                shutil.rmtree(out / name)
+        clear_generated_dataset(out)
     out.mkdir(parents=True, exist_ok=True)
     return out
 
@@ -424,18 +420,13 @@ def convert(config: Kitti360Config) -> Path:
     rig_frames.sort(key=lambda f: (f["timestamp"], f["sensor"]))
 
     priors = _perturbed(config, calib.T_ref)
-    rig_sensors = {}
-    for sensor in sensors:
-        prior, delta = priors[sensor]
-        entry = {"type": "lidar" if sensor == VELODYNE else "camera", "T_ref_sensor": prior.tolist(), "time_offset": delta}
-        entry.update(intr.get(sensor, {}))
-        rig_sensors[sensor] = entry
+    rig_sensors = {sensor: ("lidar" if sensor == VELODYNE else "camera", priors[sensor][0], priors[sensor][1],
+                            intr.get(sensor, {})) for sensor in sensors}
     meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")}
     meta.update(generator="moisst-kitti360-to-rig", time_origin=format_timestamp(origin), trajectory_source=pose_source.name,
                 note="fisheye cameras rectified to pinhole images with the fisheye's own axes; ground_truth.json is the "
                      "dataset's calibration (its LiDAR calibration is itself good to a few cm only)")
-    rig = {"format": FORMAT, "reference_sensor": REFERENCE, "trajectory": "reference_poses.txt", "sensors": rig_sensors,
-           "frames": rig_frames, "metadata": meta}
+    rig = rig_json(REFERENCE, "reference_poses.txt", rig_sensors, rig_frames, meta)
     (out / "rig.json").write_text(json.dumps(rig, indent=1) + "\n")
     Calibration(REFERENCE, {s: calib.T_ref[s] for s in sensors}, {s: 0.0 for s in sensors}).write(out / "ground_truth.json")
     return out

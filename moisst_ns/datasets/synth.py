@@ -22,7 +22,6 @@ y left, z up.
 from __future__ import annotations
 
 import json
-import shutil
 import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -33,7 +32,6 @@ import tyro
 
 from moisst_ns.datasets.synth_scene import Scene, VehiclePath, _ground, _plaza_objects, _street_objects, rot_x, rot_y, rot_z
 
-FORMAT = "moisst-rig/1"
 T0 = 1000.0
 """Absolute time of the first reference frame, seconds (keeps stamps away from zero, like real clocks)."""
 PERIOD = 0.1
@@ -391,11 +389,9 @@ def _prepare_out(config: SynthConfig) -> Path:
     if out.is_dir() and any(out.iterdir()):
         if not config.overwrite:
             raise SynthError(f"{out} exists and is not empty; pass --overwrite to replace its dataset")
-        for name in ("rig.json", "reference_poses.txt", "ground_truth.json"):
-            (out / name).unlink(missing_ok=True)
-        for name in ("images", "lidar"):
-            if (out / name).is_dir():
-                shutil.rmtree(out / name)
+        from moisst_ns.rig.format import clear_generated_dataset
+
+        clear_generated_dataset(out)
     out.mkdir(parents=True, exist_ok=True)
     return out
 
@@ -421,7 +417,7 @@ def make_rig(config: SynthConfig) -> Path:
     import torch
     from PIL import Image
 
-    from moisst_ns.rig.format import Calibration, load_tum, write_tum
+    from moisst_ns.rig.format import Calibration, load_tum, rig_json, write_tum
     from moisst_ns.rig.geometry import ReferenceTrajectory
 
     _check_config(config)
@@ -475,21 +471,15 @@ def make_rig(config: SynthConfig) -> Path:
                 frames.append({"sensor": name, "timestamp": stamp, "file_path": rel})
     frames.sort(key=lambda f: (f["timestamp"], f["sensor"]))
 
-    sensors = {}
-    for name, sensor in truth.items():
-        prior, delta = priors[name]
-        entry = {"type": sensor.type, "T_ref_sensor": prior.tolist(), "time_offset": float(delta)}
-        if sensor.type == "camera":
-            entry.update(intr)
-        sensors[name] = entry
+    sensors = {name: (sensor.type, priors[name][0], priors[name][1], intr if sensor.type == "camera" else {})
+               for name, sensor in truth.items()}
     meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")}
     for key, default in (("lidar_scans", "raw"), ("lidar_noise", 0.0)):  # recorded when used (older rigs stay byte-identical)
         if meta[key] == default:
             del meta[key]
     meta["generator"] = "moisst-synth"
     meta["note"] = "priors per --perturb; true values in ground_truth.json"
-    rig = {"format": FORMAT, "reference_sensor": REFERENCE, "trajectory": "reference_poses.txt", "sensors": sensors,
-           "frames": frames, "metadata": meta}
+    rig = rig_json(REFERENCE, "reference_poses.txt", sensors, frames, meta)
     (out / "rig.json").write_text(json.dumps(rig, indent=1) + "\n")
     Calibration(
         REFERENCE, {n: s.T_ref_sensor for n, s in truth.items()}, {n: s.time_offset for n, s in truth.items()}

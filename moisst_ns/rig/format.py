@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -338,23 +339,48 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
 
 def rig_to_json(rig: Rig) -> dict:
     """The rig.json content of ``rig`` (inverse of ``load_rig``)."""
-    sensors = {}
-    for name, s in rig.sensors.items():
-        entry = {"type": s.type, "T_ref_sensor": np.asarray(s.T_ref_sensor).tolist(), "time_offset": float(s.time_offset)}
-        entry.update(s.intrinsics)
-        sensors[name] = entry
-    return {
-        "format": FORMAT,
-        "reference_sensor": rig.reference_sensor,
-        "trajectory": rig.trajectory_file,
-        "sensors": sensors,
-        "frames": [{"sensor": f.sensor, "timestamp": f.timestamp, "file_path": f.file_path} for f in rig.frames],
-    }
+    return rig_json(
+        rig.reference_sensor,
+        rig.trajectory_file,
+        {n: (s.type, s.T_ref_sensor, s.time_offset, s.intrinsics) for n, s in rig.sensors.items()},
+        [{"sensor": f.sensor, "timestamp": f.timestamp, "file_path": f.file_path} for f in rig.frames],
+    )
 
 
-def write_rig_json(rig: Rig, path: Path) -> None:
-    """Write rig.json content to ``path`` (never call with a path inside someone's input dataset)."""
-    Path(path).write_text(json.dumps(rig_to_json(rig), indent=1) + "\n")
+def rig_json(reference_sensor: str, trajectory: str, sensors: Dict[str, tuple], frames: List[dict],
+             metadata: Optional[dict] = None) -> dict:
+    """The rig.json content (``moisst-rig/1``) from its parts; the one place that lays out the file.
+
+    Args:
+        reference_sensor: Name of the reference sensor.
+        trajectory: Path of the TUM trajectory, relative to the dataset folder.
+        sensors: ``name -> (type, T_ref_sensor (4, 4) metres, time_offset seconds, intrinsics dict)``.
+        frames: ``{"sensor", "timestamp", "file_path"}`` per frame, in file order.
+        metadata: Free-form provenance written under ``"metadata"`` (omitted when None).
+
+    Returns:
+        The JSON object, ready for ``json.dumps``.
+    """
+    entries = {name: {"type": kind, "T_ref_sensor": np.asarray(T).tolist(), "time_offset": float(delta), **intrinsics}
+               for name, (kind, T, delta, intrinsics) in sensors.items()}
+    out = {"format": FORMAT, "reference_sensor": reference_sensor, "trajectory": trajectory, "sensors": entries,
+           "frames": frames}
+    if metadata is not None:
+        out["metadata"] = metadata
+    return out
+
+
+def clear_generated_dataset(out: Path) -> None:
+    """Remove what a dataset generator (``moisst-synth``, ``moisst-kitti360-to-rig``) writes into ``out``.
+
+    Args:
+        out: A folder the generator owns (``--overwrite`` was given); other files in it are left alone.
+    """
+    for name in ("rig.json", "reference_poses.txt", "ground_truth.json"):
+        (Path(out) / name).unlink(missing_ok=True)
+    for name in ("images", "lidar"):
+        if (Path(out) / name).is_dir():
+            shutil.rmtree(Path(out) / name)
 
 
 @dataclass

@@ -1,7 +1,8 @@
 """``moisst-bench``: the MOISST paper's evaluation protocol (Tables I-VII) on synthetic rigs with exact ground
 truth, side by side with the baselines a user would otherwise try, plus speed and cost.
 
-A scenario file (``configs/bench-quick.toml``, ``configs/bench-full.toml``) lists cases: a prior perturbation
+A scenario file (``moisst_ns/scenarios/bench-quick.toml``, ``bench-full.toml``, shipped as package data and linked
+from ``configs/``) lists cases: a prior perturbation
 (translation per axis, rotation about every axis, time offset), what is optimised (spatial, temporal, both),
 which losses are off, and the table cells the case fills. Every case runs ``moisst-calibrate`` (in-process) on
 ``moisst-synth`` rigs for one or all (seed, layout) pairs. A cell is the mean ± std over seeds and over the last
@@ -24,32 +25,25 @@ import resource
 import shutil
 import sys
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-LOSS_SWITCHES = {"no-depth": "depth_loss", "no-dssim": "dssim_loss", "no-depth-smoothness": "depth_smoothness_loss"}
-OPTIMISE = ("both", "spatial", "temporal")
-ERR_KEYS = ("translation_cm", "rotation_deg", "time_ms")
-HIST_KEYS = ("err_translation_cm", "err_rotation_deg", "err_time_ms")
+from moisst_ns.bench.scenarios import ERR_KEYS, HIST_KEYS, LOSS_SWITCHES, OPTIMISE, BenchError, _seeds, load_scenarios, packaged_scenarios
+from moisst_ns.bench.tables import markdown, merge_frame_errors, plot_error_vs_time, pooled, stage_errors, time_to_target
 
-
-class BenchError(ValueError):
-    """A scenario file is malformed: ``<file>: <field>: <problem>``."""
-
+REPO = Path(__file__).resolve().parents[2]
 
 @dataclass
 class BenchConfig:
     """Benchmark MOISST on synthetic rigs with the paper's protocol (Tables I-VII), baselines and speed."""
 
     quick: bool = False
-    """Run configs/bench-quick.toml (the default when neither --quick nor --full is given; < 20 min on 2 cores)."""
+    """Run the packaged scenarios/bench-quick.toml (the default when neither --quick nor --full is given; < 20 min on 2 cores)."""
     full: bool = False
-    """Run configs/bench-full.toml (hours on 2 CPU cores)."""
+    """Run the packaged scenarios/bench-full.toml (hours on 2 CPU cores)."""
     scenarios: Optional[Path] = None
     """Another scenario file (overrides --quick/--full)."""
     out: Path = Path("outputs/bench")
@@ -58,58 +52,6 @@ class BenchConfig:
     """Also copy benchmarks.md and the plot into the repository's docs/ (docs/benchmarks.md)."""
     threads: Optional[int] = None
     """torch CPU threads (torch's default when omitted)."""
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Scenarios
-
-
-def load_scenarios(path: Path) -> dict:
-    """Read and validate a scenario file."""
-    path = Path(path)
-    if not path.is_file():
-        raise BenchError(f"{path}: (file): not found")
-    try:
-        raw = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as err:
-        raise BenchError(f"{path}: (toml): {err}") from None
-    for key in ("name", "steps", "rays", "lidar_rays", "last", "rig", "seeds", "case"):
-        if key not in raw:
-            raise BenchError(f"{path}: {key}: missing")
-    for key in ("steps", "rays", "last"):
-        if not isinstance(raw[key], int) or raw[key] < 1:
-            raise BenchError(f"{path}: {key}: must be a positive integer, got {raw[key]!r}")
-    if not raw["seeds"] or any(not (isinstance(s, list) and len(s) == 2 and isinstance(s[0], int) and s[1] in ("street", "plaza")) for s in raw["seeds"]):
-        raise BenchError(f"{path}: seeds: must be a non-empty list of [seed, 'street' | 'plaza'] pairs")
-    ids = set()
-    for i, case in enumerate(raw["case"]):
-        where = f"case[{i}]"
-        if "id" not in case or case["id"] in ids:
-            raise BenchError(f"{path}: {where}.id: missing or repeated")
-        ids.add(case["id"])
-        perturb = case.get("perturb", {})
-        for key in ("translation", "rotation", "time"):
-            value = perturb.get(key)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
-                raise BenchError(f"{path}: {where}.perturb.{key}: must be a number >= 0, got {value!r}")
-        if case.get("optimise", "both") not in OPTIMISE:
-            raise BenchError(f"{path}: {where}.optimise: must be one of {OPTIMISE}, got {case.get('optimise')!r}")
-        for loss in case.get("losses", []):
-            if loss not in LOSS_SWITCHES:
-                raise BenchError(f"{path}: {where}.losses: unknown {loss!r}; known: {sorted(LOSS_SWITCHES)}")
-        patch = case.get("patch_size", None)
-        if patch is not None and (isinstance(patch, bool) or not isinstance(patch, int) or patch < 1):
-            raise BenchError(f"{path}: {where}.patch_size: must be a positive integer, got {patch!r}")
-        if case.get("seeds", "all") not in ("all", "first"):
-            raise BenchError(f"{path}: {where}.seeds: must be 'all' or 'first'")
-        if not case.get("tables"):
-            raise BenchError(f"{path}: {where}.tables: missing (which table cells this case fills)")
-    return raw
-
-
-def _seeds(raw: dict, which: str) -> List[Tuple[int, str]]:
-    pairs = [tuple(s) for s in raw["seeds"]]
-    return pairs if which == "all" else pairs[:1]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -208,7 +150,7 @@ def nerfacto_case(rig: Path, out: Path, raw: dict, steps: int, pose_optimizer: s
     """A plain nerfacto run (baseline or timing) with the preset's field; per-frame pose errors of its cameras."""
     import torch
 
-    from moisst_ns.baseline import run_nerfacto
+    from moisst_ns.bench.baseline import run_nerfacto
     from moisst_ns.rig.calibration import RigData, frame_pose_errors, frame_poses
     from moisst_ns.rig.format import load_calibration, load_rig
 
@@ -227,171 +169,28 @@ def nerfacto_case(rig: Path, out: Path, raw: dict, steps: int, pose_optimizer: s
     return {"seconds_per_step": result.seconds_per_step, "frame_errors": errors, "steps": steps}
 
 
-# ----------------------------------------------------------------------------------------------------------------
-# Aggregation
+def floor_cases(out: Path, raw: dict, perturb: dict) -> List[dict]:
+    """Run ``moisst_ns.floor`` on the scenario's rigs (``[floor]`` table: steps, register_steps, depth_rays, seeds,
+    lidar_scene); the method preset's own rays per step.
 
+    Returns:
+        Per rig: ``{"layout", "seed", "scene_steps", "register_steps", "wall_s", "floor", "depth"}``.
+    """
+    from moisst_ns.floor import FloorConfig, run_floor
 
-def pooled(runs: List[dict], last: int) -> Dict[str, Dict[str, Tuple[float, float]]]:
-    """Per sensor and error: mean and std over runs (seeds) and their last ``last`` logged estimates."""
-    values: Dict[str, Dict[str, List[float]]] = {}
-    for run in runs:
-        if "history" not in run:
-            continue
-        for sensor, cols in run["history"].items():
-            for key, hkey in zip(ERR_KEYS, HIST_KEYS):
-                values.setdefault(sensor, {}).setdefault(key, []).extend(cols[hkey][-last:])
-    return {s: {k: (float(np.mean(v)), float(np.std(v))) for k, v in keys.items()} for s, keys in values.items()}
-
-
-def merge_frame_errors(runs: List[Dict[str, dict]]) -> Dict[str, Dict[str, Tuple[float, float]]]:
-    """Per-frame pose errors of several runs (``frame_pose_errors`` per sensor) as (mean of the means, RMS of the
-    per-run stds) per sensor, for translation_cm and rotation_deg."""
-    merged: Dict[str, List[dict]] = {}
-    for run in runs:
-        for sensor, e in run.items():
-            merged.setdefault(sensor, []).append(e)
-    return {s: {m: (float(np.mean([e[m] for e in es])), float(np.sqrt(np.mean([e[m + "_std"] ** 2 for e in es]))))
-                for m in ("translation_cm", "rotation_deg")} for s, es in merged.items()}
-
-
-def time_to_target(run: dict, target: dict, cameras: List[str]) -> Optional[float]:
-    """Wall seconds (from the first logged step) until every listed camera is within the target at once."""
-    if "history" not in run or not cameras:
-        return None
-    hist = run["history"]
-    rows = len(hist[cameras[0]]["step"])
-    for r in range(rows):
-        ok = all(
-            hist[c]["err_translation_cm"][r] <= target["translation_cm"] and hist[c]["err_rotation_deg"][r] <= target["rotation_deg"]
-            and hist[c]["err_time_ms"][r] <= target["time_ms"] for c in cameras
-        )
-        if ok:
-            return float(hist[cameras[0]]["elapsed_s"][r])
-    return None
-
-
-def _cell(stat: Optional[Tuple[float, float]], digits: int) -> str:
-    return "–" if stat is None else f"{stat[0]:.{digits}f} ± {stat[1]:.{digits}f}"
-
-
-def stage_errors(runs: List[dict]) -> Dict[str, Dict[str, float]]:
-    """Per LiDAR, the LiDAR-first stage's errors and wall time averaged over the runs that ran it."""
-    out: Dict[str, Dict[str, List[float]]] = {}
-    for run in runs:
-        for sensor, entry in run.get("lidar_first", {}).items():
-            if "errors_after" in entry:
-                cell = out.setdefault(sensor, {k: [] for k in ERR_KEYS + ("wall_s",)})
-                for k in ERR_KEYS:
-                    cell[k].append(entry["errors_after"][k])
-                cell["wall_s"].append(entry["wall_s"])
-    return {s: {k: float(np.mean(v)) for k, v in cols.items()} for s, cols in out.items()}
-
-
-def _stage_cell(case: dict, sensor: str) -> str:
-    e = case.get("lidar_first", {}).get(sensor)
-    return "–" if e is None else f"{e['translation_cm']:.2f} / {e['rotation_deg']:.3f} / {e['time_ms']:.2f} ({e['wall_s']:.0f} s)"
-
-
-def markdown(result: dict) -> str:
-    """The Markdown report of a benchmark result."""
-    raw, cases = result["scenario"], result["cases"]
-    lines = [
-        f"# Benchmarks ({raw['name']})",
-        "",
-        f"Measured {result['date']} with `{result['command']}` on {result['machine']['summary']}.",
-        f"Rigs: `moisst-synth` {raw['rig']['width']}x{raw['rig']['height']}, {raw['rig']['frames']} frames per sensor, "
-        f"3 cameras + 32-beam LiDAR, seeds/layouts {', '.join(f'{s}/{l}' for s, l in raw['seeds'])}. "
-        f"`moisst-lite`, {raw['steps']} steps, {raw['rays']} camera rays + {raw['lidar_rays']} LiDAR points per step. "
-        f"Cells: mean ± std over seeds and the last {raw['last']} logged estimates (every 25 steps); errors of the "
-        "priors in the 'before' column. The Table VII cases sample a quarter of the camera rays as 4x4 patches (the "
-        "patch losses need them; `moisst-lite` does not by default). Total wall time "
-        f"{result['total_s'] / 60:.1f} min, peak RSS {result['peak_rss_gb']:.2f} GB.",
-        "",
-    ]
-    table_titles = {
-        "I": "Table I: spatial calibration (spatial error only; only extrinsics optimised)",
-        "II": "Table II: temporal calibration (time error only; only time offsets optimised)",
-        "III": "Table III: spatiotemporal calibration (±50 cm, ±5°, ±100 ms)",
-        "IV": "Table IV: initial-error sensitivity (solely rotation or solely translation error; everything optimised)",
-        "V": "Table V: optimised parameters (full perturbation)",
-        "VII": "Table VII: losses (full perturbation)",
-    }
-    for table, title in table_titles.items():
-        rows = []
-        for case in cases:
-            for tag in case["tables"]:
-                name, _, label = tag.partition(":")
-                if name != table:
-                    continue
-                stats = case["pooled"]
-                before = case["before"]
-                for sensor in sorted(stats):
-                    s = stats[sensor]
-                    b = before.get(sensor, {})
-                    rows.append(f"| {label or case['id']} | {sensor} | {b.get('translation_cm', float('nan')):.1f} / "
-                                f"{b.get('rotation_deg', float('nan')):.2f} / {b.get('time_ms', float('nan')):.0f} | "
-                                f"{_cell(s.get('translation_cm'), 1)} | {_cell(s.get('rotation_deg'), 2)} | {_cell(s.get('time_ms'), 1)} | "
-                                f"{_stage_cell(case, sensor)} |")
-                if case.get("failed"):
-                    rows.append(f"| {label or case['id']} | – | {case['failed']} | | | | |")
-        if rows:
-            lines += [f"## {title}", "", "| case | sensor | before (cm / ° / ms) | translation (cm) | rotation (°) | time (ms) | "
-                      "LiDAR-first stage alone (cm / ° / ms, wall) |", "| --- | --- | --- | --- | --- | --- | --- |"] + rows + [""]
-    # Table VI
-    rows = []
-    for case in cases:
-        if not any(t.startswith("V") and not t.startswith("VI") for t in case["tables"]):
-            continue
-        label = next(t.partition(":")[2] for t in case["tables"] if t.startswith("V:"))
-        for sensor, e in sorted(case["frame_errors"].items()):
-            rows.append(f"| MOISST, {label} | {sensor} | {_cell(e['translation_cm'], 1)} | {_cell(e['rotation_deg'], 2)} |")
-        if label == "both":
-            for sensor, e in sorted(case["frame_errors_prior"].items()):
-                rows.append(f"| priors alone | {sensor} | {_cell(e['translation_cm'], 1)} | {_cell(e['rotation_deg'], 2)} |")
-    for sensor, e in sorted(result.get("baseline", {}).get("frame_errors", {}).items()):
-        rows.append(f"| nerfacto SO3xR3 per-frame poses | {sensor} | {_cell(e['translation_cm'], 1)} | {_cell(e['rotation_deg'], 2)} |")
-    if rows:
-        lines += ["## Table VI: per-frame pose errors (final estimate; mean ± std over frames and seeds)", "",
-                  "| method | sensor | translation (cm) | rotation (°) |", "| --- | --- | --- | --- |"] + rows + [""]
-    # Speed
-    lines += ["## Speed and cost", "", "| preset | moisst s/step (cameras only) | nerfacto s/step (same field, same rays) | overhead ratio | moisst s/step with LiDAR |",
-              "| --- | --- | --- | --- | --- |"]
-    for t in result["timing"]:
-        lines.append(f"| {t['preset']} ({t['steps']} steps) | {t['moisst_s']:.3f} | {t['nerfacto_s']:.3f} | {t['ratio']:.2f} | "
-                     f"{t['moisst_lidar_s']:.3f} |")
-    lines += [""]
-    ttt = result["time_to_target"]
-    target = raw.get("target", {})
-    lines += [f"Wall time until every non-reference camera is within {target.get('translation_cm')} cm / "
-              f"{target.get('rotation_deg')}° / {target.get('time_ms')} ms (combined case): "
-              + ", ".join(f"{k}: {'not reached' if v is None else f'{v:.0f} s'}" for k, v in ttt.items()) + ".", ""]
-    fail_at = result.get("sensitivity")
-    if fail_at:
-        lines += [f"Initial-error sensitivity (cam_front_right): {fail_at}", ""]
-    lines += ["![error vs wall time](bench_error_vs_time.png)", ""]
-    return "\n".join(lines)
-
-
-def plot_error_vs_time(run: dict, path: Path, title: str) -> None:
-    """Translation, rotation and time error of every sensor against wall time (one run)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    for sensor, cols in run.get("history", {}).items():
-        for ax, key, label in zip(axes, HIST_KEYS, ("translation error (cm)", "rotation error (deg)", "time error (ms)")):
-            ax.plot(cols["elapsed_s"], cols[key], marker=".", label=sensor)
-            ax.set_xlabel("wall time (s)")
-            ax.set_ylabel(label)
-            ax.set_yscale("log")
-            ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend()
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    spec = raw["floor"]
+    floors = []
+    for seed, layout in _seeds(raw, spec.get("seeds", "all")):
+        rig = make_bench_rig(out, raw, seed, layout, perturb)
+        print(f"[moisst-bench] floor, seed {seed} ({layout})", flush=True)
+        started = time.perf_counter()
+        measured = run_floor(FloorConfig(dataset=rig, output_dir=out / "runs" / f"floor-{layout}-s{seed}",
+                                         scene_steps=spec.get("steps", raw["steps"]), register_steps=spec.get("register_steps", 100),
+                                         seed=seed, depth_check_rays=spec.get("depth_rays", 4096),
+                                         lidar_scene=bool(spec.get("lidar_scene", False))))
+        floors.append({"layout": layout, "seed": seed, "scene_steps": measured["scene_steps"], "register_steps": measured["register_steps"],
+                       "wall_s": time.perf_counter() - started, "floor": measured["floor"], "depth": measured["depth"]})
+    return floors
 
 
 def machine() -> dict:
@@ -410,7 +209,7 @@ def run_bench(cfg: BenchConfig) -> dict:
     if cfg.scenarios is not None:
         path = cfg.scenarios
     else:
-        path = REPO / "configs" / ("bench-full.toml" if cfg.full else "bench-quick.toml")
+        path = packaged_scenarios("full" if cfg.full else "quick")
     raw = load_scenarios(path)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -455,6 +254,10 @@ def run_bench(cfg: BenchConfig) -> dict:
             b = nerfacto_case(rig, out / "runs" / f"nerfacto-so3xr3-{layout}-s{seed}", raw, base.get("steps", raw["steps"]), "SO3xR3")
             runs.append(b["frame_errors"])
         result["baseline"] = {"frame_errors": merge_frame_errors(runs)}
+
+    # Floor: the scene at the truth, the calibration released at the truth (moisst-floor), per rig.
+    if raw.get("floor"):
+        result["floor"] = floor_cases(out, raw, combined["perturb"])
 
     # Speed: MOISST preset (cameras only, and with LiDAR) vs nerfacto with the same field and camera rays.
     result["timing"] = []

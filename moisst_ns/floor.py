@@ -1,0 +1,316 @@
+"""The accuracy floor of a dataset at a training budget (``moisst-floor``, and the ``floor`` cases of ``moisst-bench``).
+
+A calibration can only be as good as the scene it registers against. ``run_floor`` trains the scene with every
+sensor held at its *true* calibration (the same field, rays, losses and step count as the method), freezes the
+scene, then releases every sensor's calibration *at the truth* and lets the calibration losses move it for
+``register_steps`` steps. Where the sensors settle is the floor: a minimum of the losses that is not the truth, so
+no schedule of the joint optimisation can be expected to end closer than this with that scene budget. It also
+measures the scene's geometry directly: the median depth error of camera rays (against the exact synthetic scene,
+on ``moisst-synth`` rigs, for rays whose surface the LiDAR can see) and of LiDAR rays (against the measured ranges).
+Nothing is written into the dataset.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Literal, Optional
+
+import numpy as np
+
+from moisst_ns.pipeline import LIDAR_DEPTH_PER_M2, lidar_scene_settings, seed_everything
+from moisst_ns.runs.folder import check_output_dir
+from moisst_ns.runs.history import format_error_table
+
+CALIBRATION_GROUPS = ("calibration_rotation", "calibration_translation", "calibration_time")
+
+
+class FloorError(ValueError):
+    """The floor cannot be measured on this input: ``<file>: <field>: <problem>`` or a one-line reason."""
+
+
+@dataclass
+class FloorConfig:
+    """Measure how close to the truth a scene of this budget lets the calibration settle."""
+
+    dataset: Path
+    """Dataset folder holding rig.json and ground_truth.json."""
+    output_dir: Path = Path("outputs/floor")
+    """Where floor.json, floor_history.csv and the nerfstudio run of the scene go."""
+    method: Literal["moisst", "moisst-lite"] = "moisst-lite"
+    """Preset whose field, rays, losses and schedules build the scene."""
+    scene_steps: Optional[int] = None
+    """Steps to train the scene at the true calibration (the method's default run length when omitted)."""
+    register_steps: int = 300
+    """Steps of calibration-only optimisation against the frozen scene, starting at the truth."""
+    log_every: int = 25
+    """Log every sensor's errors every this many registration steps."""
+    average_last: int = 4
+    """The floor is the mean error over this many last logged estimates."""
+    seed: int = 42
+    """Random seed (sampling, initialisation)."""
+    threads: Optional[int] = None
+    """torch CPU threads; torch's default when omitted."""
+    depth_loss_per_m2: Optional[float] = None
+    """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
+    method's normalised-depth loss (the paper's) when omitted."""
+    lidar_scene: bool = False
+    """Train the scene as ``moisst-calibrate --lidar-scene`` does (metric LiDAR depth from step 0 over the whole
+    scan; ``--depth-loss-per-m2`` or the pipeline's default weight of 5 per m^2)."""
+    line_of_sight_mult: Optional[float] = None
+    """Weight of the line-of-sight loss on LiDAR rays (the model's default when omitted; 0 switches it off)."""
+    lidar_far_margin: Optional[float] = None
+    """LiDAR-guided sampling as ``moisst-calibrate --lidar-far-margin`` (the model's default when omitted)."""
+    depth_check_rays: int = 8192
+    """Camera rays whose rendered depth is compared with the true surface (0: skip the depth check)."""
+
+
+def floor_errors(rows: List[Dict[str, float]], average_last: int) -> Dict[str, Dict[str, float]]:
+    """Per sensor, the mean of the last ``average_last`` logged errors.
+
+    Args:
+        rows: ``{"step", "sensor", "translation_cm", "rotation_deg", "time_ms"}`` per logged estimate, in step order.
+        average_last: How many of each sensor's last rows to average.
+
+    Returns:
+        ``{sensor: {"translation_cm", "rotation_deg", "time_ms"}}``.
+    """
+    out: Dict[str, Dict[str, float]] = {}
+    for name in dict.fromkeys(r["sensor"] for r in rows):
+        tail = [r for r in rows if r["sensor"] == name][-average_last:]
+        out[name] = {k: sum(r[k] for r in tail) / len(tail) for k in ("translation_cm", "rotation_deg", "time_ms")}
+    return out
+
+
+def camera_depth_errors(
+    rendered_m: np.ndarray, true_m: np.ndarray, in_field: np.ndarray
+) -> Dict[str, float]:
+    """Depth errors of camera rays against the true surface.
+
+    Args:
+        rendered_m: (N,) expected depth rendered by the scene, metres along the unit ray.
+        true_m: (N,) distance to the true surface along the same ray, metres (inf on a miss).
+        in_field: (N,) whether the LiDAR can see that surface.
+
+    Returns:
+        ``{"camera_rays", "median_abs_m", "p90_abs_m"}`` over the rays that hit a surface in the LiDAR's field
+        (NaN figures when there are none).
+    """
+    keep = np.isfinite(true_m) & in_field
+    err = np.abs(rendered_m[keep] - true_m[keep])
+    if err.size == 0:
+        return {"camera_rays": 0, "median_abs_m": float("nan"), "p90_abs_m": float("nan")}
+    return {"camera_rays": int(err.size), "median_abs_m": float(np.median(err)), "p90_abs_m": float(np.percentile(err, 90))}
+
+
+def scene_depth_check(pipeline, rig_root: Path, num_rays: int) -> Dict[str, float]:
+    """Median depth errors of the trained scene (at the true calibration): camera rays against the exact synthetic
+    scene (``moisst-synth`` rigs only) and LiDAR rays against their measured range.
+
+    Args:
+        pipeline: The trained nerfstudio pipeline (its calibration at the truth).
+        rig_root: Dataset folder (its rig.json ``metadata`` names the synthetic scene).
+        num_rays: At least this many camera rays are checked.
+
+    Returns:
+        ``{"camera_rays", "median_abs_m", "p90_abs_m", "lidar_rays", "lidar_median_abs_m"}``; the camera figures
+        are absent when the scene is not known.
+    """
+    import torch
+
+    from moisst_ns.datasets.synth import build_scene
+    from moisst_ns.datasets.synth_truth import config_of_rig, in_lidar_field
+
+    metadata = json.loads((Path(rig_root) / "rig.json").read_text()).get("metadata", {})
+    synth = config_of_rig(metadata)
+    scene = build_scene(synth) if synth is not None else None
+    model, datamanager = pipeline.model, pipeline.datamanager
+    optimizer = model.camera_optimizer
+    rig = optimizer.rig
+    world, scale = optimizer.world, float(optimizer.world_scale)
+    lidars = [i for i, kind in enumerate(rig.data.sensor_types) if kind == "lidar"]
+    extrinsics = rig.extrinsics().detach().double().cpu().numpy()
+    rendered, truth, in_field, lidar_err = [], [], [], []
+    checked, step = 0, 10**6
+    with torch.no_grad():
+        while checked < num_rays:
+            ray_bundle, batch = datamanager.next_train(step)
+            step += 1
+            outputs = model(ray_bundle)  # training mode: the rays are re-posed at the (true) calibration
+            layout = batch["ray_layout"]
+            depth = outputs["expected_depth"][:, 0].double().cpu().numpy() / scale
+            if layout.lidar is not None and "lidar_range" in batch:
+                lidar_err.append(np.abs(depth[layout.lidar] - batch["lidar_range"].double().cpu().numpy() / scale))
+            cam = layout.camera
+            checked += cam.stop - cam.start
+            if scene is None:
+                continue
+            origins = ray_bundle.origins[cam].double().cpu().numpy() / scale + np.asarray(world.center)
+            dirs = ray_bundle.directions[cam].double().cpu().numpy()
+            dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+            hit = scene.cast(origins, dirs)["t_hit"].astype(np.float64)
+            points = origins + dirs * np.where(np.isfinite(hit), hit, 0.0)[:, None]
+            frames = ray_bundle.camera_indices[cam].reshape(-1).long()
+            c2w = world.camera_to_world(optimizer.frame_c2w(frames).detach().cpu().numpy())
+            sensor = optimizer.frame_sensor[frames.to(optimizer.frame_sensor.device)].cpu().numpy()
+            seen = np.zeros(len(points), dtype=bool)
+            for lidar in lidars:
+                world_T_lidar = c2w @ np.linalg.inv(extrinsics[sensor]) @ extrinsics[lidar]
+                local = np.einsum("nji,nj->ni", world_T_lidar[:, :3, :3], points - world_T_lidar[:, :3, 3])
+                seen |= in_lidar_field(local, synth)
+            rendered.append(depth[cam])
+            truth.append(hit)
+            in_field.append(seen)
+    result: Dict[str, float] = {}
+    if scene is not None:
+        result.update(camera_depth_errors(np.concatenate(rendered), np.concatenate(truth), np.concatenate(in_field)))
+    if lidar_err:
+        joined = np.concatenate(lidar_err)
+        result.update(lidar_rays=int(joined.size), lidar_median_abs_m=float(np.median(joined)))
+    return result
+
+
+def run_floor(cfg: FloorConfig) -> dict:
+    """Train the scene at the truth, register from the truth against it, check its depths; write ``floor.json``.
+
+    Args:
+        cfg: What to measure and where to write it.
+
+    Returns:
+        The content of ``floor.json``: ``{"floor": {sensor: errors}, "depth": {...}, wall times, settings}``.
+
+    Raises:
+        FloorError: the dataset has no ground truth, a setting is out of range, or the output folder is refused.
+        RigFormatError: rig.json is malformed.
+    """
+    import torch
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    from moisst_ns.method_configs import moisst_trainer_config
+    from moisst_ns.rig.format import load_rig
+    from moisst_ns.runs import RunError
+
+    rig = load_rig(cfg.dataset)
+    if not (rig.root / "ground_truth.json").is_file():
+        raise FloorError(f"{rig.root / 'ground_truth.json'}: not found: the floor is measured against the true calibration")
+    if cfg.register_steps < 1 or cfg.log_every < 1 or cfg.average_last < 1:
+        raise FloorError("--register-steps, --log-every and --average-last must be >= 1")
+    out = Path(cfg.output_dir)
+    try:
+        check_output_dir(out, rig.root, create=True)
+    except RunError as err:
+        raise FloorError(str(err)) from None
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+
+    config = moisst_trainer_config(cfg.method, cfg.scene_steps)
+    config.pipeline.datamanager.data = rig.root
+    config.pipeline.datamanager.dataparser.data = rig.root
+    config.output_dir, config.experiment_name, config.timestamp = out, ".", "scene"
+    config.machine.seed = cfg.seed
+    config.vis = "tensorboard"
+    model, datamanager = config.pipeline.model, config.pipeline.datamanager
+    if cfg.lidar_scene and any(s.type == "lidar" for s in rig.sensors.values()):
+        lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
+    elif cfg.depth_loss_per_m2 is not None:
+        model.depth_loss_units, model.depth_loss_mult = "metric", cfg.depth_loss_per_m2
+    if cfg.line_of_sight_mult is not None:
+        model.line_of_sight_mult = cfg.line_of_sight_mult
+    if cfg.lidar_far_margin is not None:
+        model.lidar_far_margin_m = cfg.lidar_far_margin
+    # The scene is built at the true calibration, so the phases that protect it from miscalibrated sensors
+    # (reference-only warm-up, detached registration, coarse-to-fine) are switched off: the best scene of this budget.
+    model.camera_optimizer.mode = "off"
+    model.calibration_warmup_steps, model.reference_only_warmup, model.registration_steps = 0, False, 0
+    model.coarse_to_fine = (0, 0)
+    datamanager.reference_only_steps = datamanager.registration_steps = 0
+    config.save_config()
+
+    seed_everything(cfg.seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    pipeline = trainer.pipeline
+    optimizer = pipeline.model.camera_optimizer
+    optimizer.rig.set_corrections_to(optimizer.rig.data.ground_truth)  # the scene trains at the truth
+    start = time.time()
+    trainer.train()
+    scene_wall = time.time() - start
+
+    for param in pipeline.model.parameters():
+        param.requires_grad_(False)
+    pipeline.model.train()
+    depth = scene_depth_check(pipeline, rig.root, cfg.depth_check_rays) if cfg.depth_check_rays > 0 else {}
+
+    # Register: the scene frozen, every sensor released at its truth.
+    rig_params = optimizer.rig
+    groups = dict(zip(CALIBRATION_GROUPS, (rig_params.rotvec, rig_params.translation, rig_params.time_offset)))
+    steppers = []
+    for key, param in groups.items():
+        param.requires_grad_(True)
+        settings = config.optimizers[key]
+        opt = settings["optimizer"].setup(params=[param])
+        lr_final = settings["scheduler"].lr_final
+        scheduler = ExponentialDecaySchedulerConfig(lr_final=lr_final, max_steps=cfg.register_steps).setup()
+        steppers.append((opt, scheduler.get_scheduler(optimizer=opt, lr_init=settings["optimizer"].lr)))
+    names = rig_params.data.sensor_names
+    rows: List[Dict[str, float]] = []
+
+    def log(step: int) -> None:
+        for name, err in (rig_params.errors() or {}).items():
+            if name != names[rig_params.data.reference_index]:
+                rows.append({"step": step, "sensor": name, **{k: float(v) for k, v in err.items()}})
+
+    log(0)
+    base = config.max_num_iterations
+    start = time.time()
+    for step in range(1, cfg.register_steps + 1):
+        pipeline.model._update_schedule(base + step)
+        _, loss_dict, _ = pipeline.get_train_loss_dict(step=base + step)
+        loss = torch.stack([v for v in loss_dict.values()]).sum()
+        for opt, _ in steppers:
+            opt.zero_grad(set_to_none=True)
+        loss.backward()
+        for opt, scheduler in steppers:
+            opt.step()
+            scheduler.step()
+        optimizer.project()
+        if step % cfg.log_every == 0 or step == cfg.register_steps:
+            log(step)
+    register_wall = time.time() - start
+
+    with (out / "floor_history.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=["step", "sensor", "translation_cm", "rotation_deg", "time_ms"])
+        writer.writeheader()
+        writer.writerows(rows)
+    floor = floor_errors([r for r in rows if r["step"] > 0], cfg.average_last)
+    result = {
+        "method": cfg.method,
+        "scene_steps": config.max_num_iterations,
+        "register_steps": cfg.register_steps,
+        "average_last": cfg.average_last,
+        "lidar_scene": cfg.lidar_scene,
+        "line_of_sight_mult": float(pipeline.model.config.line_of_sight_mult),
+        "lidar_far_margin_m": float(pipeline.model.config.lidar_far_margin_m),
+        "scene_wall_time_s": scene_wall,
+        "register_wall_time_s": register_wall,
+        "floor": floor,
+        "depth": depth,
+    }
+    (out / "floor.json").write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+def floor_summary(result: dict) -> str:
+    """The floor table and the depth figures as printed by ``moisst-floor``."""
+    lines = [format_error_table(f"floor ({result['scene_steps']} scene steps at the truth, then {result['register_steps']} "
+                                "calibration steps from the truth against the frozen scene):", result["floor"])]
+    depth = result.get("depth", {})
+    if "median_abs_m" in depth:
+        lines.append(f"camera-ray depth error in the LiDAR's field: median {depth['median_abs_m'] * 100:.1f} cm, "
+                     f"90th percentile {depth['p90_abs_m'] * 100:.1f} cm ({depth['camera_rays']} rays)")
+    if "lidar_median_abs_m" in depth:
+        lines.append(f"LiDAR-ray depth error: median {depth['lidar_median_abs_m'] * 100:.1f} cm ({depth['lidar_rays']} rays)")
+    return "\n".join(lines)
