@@ -73,9 +73,7 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         train_num_rays_per_batch=1024 if lite else 4096,
         # The patch losses of eq. 13 (DSSIM, depth smoothness) use a quarter of the camera rays, sampled as P x P
         # patches. On for `moisst` (the paper's losses); off for `moisst-lite` (--patch-size 4 turns them on),
-        # because at its budget they measured worse on the tiny e2e rig (cam_front_right after 600 steps:
-        # 71.5 cm / 1.94 deg / 40.6 ms without, 73.6 / 6.67 / 14.4 with both, 71.8 / 3.94 / 31.4 with depth
-        # smoothness only, 85.7 / 2.87 / 89.9 with DSSIM only; one seed each, see docs/method.md).
+        # because at its budget they measured worse (docs/method.md, "Schedules", item 6).
         patch_size=1 if lite else 8,
         patch_fraction=0.25,
         eval_num_rays_per_batch=1024 if lite else 4096,
