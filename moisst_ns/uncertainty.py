@@ -152,3 +152,76 @@ def nerf_uncertainties(pipeline, config: UncertaintyConfig) -> Dict[str, SensorU
         if found is not None:
             out[name] = found
     return out
+
+
+SIGMA_UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
+"""Display scale and unit of each of the 7 sigmas (stored in m, rad, s)."""
+
+
+def trust_entry(sigma: Optional[List[float]], verdict: str, weak: List[str], reason: str):
+    """A ``SensorTrust`` from 7 sigmas in m / rad / s (None: not measured)."""
+    from moisst_ns.rig.trust import SensorTrust
+
+    if sigma is None:
+        return SensorTrust(verdict=verdict, weak=weak, reason=reason)
+    return SensorTrust([float(s) for s in sigma[:3]], [float(np.rad2deg(s)) for s in sigma[3:6]], float(sigma[6]), verdict, weak, reason)
+
+
+def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: Dict[str, str], hit: Dict[str, list],
+               config: Optional[UncertaintyConfig]):
+    """Sigma, weak parameters and verdict of every non-reference sensor; the prior replaces any estimate that the
+    held-back loss says is no better than it.
+
+    Args:
+        pipeline: the trained pipeline.
+        estimate: the NeRF's estimate (``Calibration``).
+        stage: the LiDAR-first stage's summary (its sensors' formal sigma and weak parameters), or None.
+        drive: ``stages.drive_observability.analyse_rig_drive`` results.
+        moving: sensors still moving (name -> spread).
+        hit: sensors that ran into a bound (name -> bounds).
+        config: settings of the held-back pass; None skips it (no sigma for the NeRF's sensors).
+
+    Returns:
+        ``(calibration with trust fields, JSON-ready per-sensor record, lines to print)``.
+    """
+    from moisst_ns.rig.format import Calibration
+    from moisst_ns.rig.trust import PARAMETERS, decide_verdict
+    from moisst_ns.stages.observability import TEST_STEPS
+
+    start = time.time()
+    rig = pipeline.model.camera_optimizer.rig
+    measured = nerf_uncertainties(pipeline, config) if config is not None else {}
+    final = Calibration(estimate.reference_sensor, dict(estimate.T_ref_sensor), dict(estimate.time_offset), {})
+    drive_weak = {r.sensor: r.weak for r in drive}
+    record, lines = {}, []
+    for i, name in enumerate(rig.data.sensor_names):
+        if i == rig.data.reference_index:
+            continue
+        sigma, loss_est, loss_prior, source = None, None, None, "none"
+        if name in measured:
+            m = measured[name]
+            sigma, loss_est, loss_prior, source = m.sigma, m.loss_estimate, m.loss_prior, "held-back pixels"
+        elif stage is not None and name in stage["sensors"]:
+            sigma, source = [d["sigma"] for d in stage["sensors"][name]["observability"]], "LiDAR-first formal"
+        weak = list(drive_weak.get(name, []))
+        if stage is not None and name in stage["sensors"]:
+            weak += stage["sensors"][name]["weak"]
+        if sigma is not None:
+            weak += [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step]
+        weak = [p for p in PARAMETERS if p in weak]
+        verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []))
+        if keep_prior:
+            final.T_ref_sensor[name] = rig.data.prior_extrinsics[i].copy()
+            final.time_offset[name] = float(rig.data.prior_time_offsets[i])
+            lines.append(f"WARNING: {name}: {reason}; calibration.json keeps it")
+        final.trust[name] = trust_entry(sigma, verdict, weak, reason)
+        record[name] = {"sigma": sigma, "sigma_source": source, "loss_estimate": loss_est, "loss_prior": loss_prior,
+                        "kept_prior": keep_prior, **final.trust[name].to_json()}
+    head = f"{'sensor':<12}" + "".join(f"{'s_' + p:>14}" for p in PARAMETERS) + "  verdict"
+    table = ["uncertainty (1 sigma: cm, deg, ms) and verdict per sensor:", head]
+    for name, r in record.items():
+        cells = ["-" if r["sigma"] is None else f"{r['sigma'][k] * SIGMA_UNITS[k][0]:.3g}" for k in range(7)]
+        table.append(f"{name:<12}" + "".join(f"{c:>14}" for c in cells) + f"  {r['verdict']}: {r['reason']}")
+    wall = time.time() - start
+    table.append(f"(sigma from {', '.join(sorted({r['sigma_source'] for r in record.values()}))}; {wall:.1f} s)")
+    return final, {"sensors": record, "wall_s": wall}, table + lines

@@ -153,3 +153,65 @@ def test_verdict_rules(moving, loss_est, loss_prior, weak, hit, verdict, keep_pr
     got, reason, keep = decide_verdict(moving, loss_est, loss_prior, weak, hit)
     assert (got, keep) == (verdict, keep_prior)
     assert reason and "\n" not in reason
+
+
+def _write(path, dx=0.0, roll_deg=0.0, ddelta=0.0, sigma=None, verdict=None):
+    import roma as _roma
+
+    pose = np.eye(4)
+    pose[:3, :3] = _roma.rotvec_to_rotmat(torch.tensor([np.deg2rad(roll_deg), 0.0, 0.0])).numpy()
+    pose[0, 3] = 0.5 + dx
+    trust = {}
+    if sigma is not None or verdict is not None:
+        s = sigma or (None, None, None)
+        trust["cam1"] = SensorTrust([s[0]] * 3 if s[0] is not None else None, [s[1]] * 3 if s[1] is not None else None, s[2],
+                                    verdict, [], "test")
+    Calibration("cam0", {"cam0": np.eye(4), "cam1": pose}, {"cam0": 0.0, "cam1": 0.02 + ddelta}, trust).write(path)
+    return path
+
+
+def test_eval_two_estimates_in_sigma_units(tmp_path):
+    from moisst_ns.cli.evaluate import EvaluateConfig, run_evaluate, sigma_table
+
+    a = _write(tmp_path / "a.json", sigma=(0.01, 0.1, 0.001), verdict="converged")
+    b = _write(tmp_path / "b.json", dx=0.03, roll_deg=0.3, ddelta=0.005, sigma=(0.01, 0.1, 0.001), verdict="converged")
+    rows = sigma_table(a, b)
+    assert rows["second_is_estimate"]
+    units = rows["sensors"]["cam1"]["sigma_units"]
+    np.testing.assert_allclose([units[0], units[3], units[6]], [0.03 / np.sqrt(2e-4), 0.3 / np.sqrt(0.02), 0.005 / np.sqrt(2e-6)], rtol=1e-6)
+    assert units[1] == pytest.approx(0.0, abs=1e-9)
+    text = run_evaluate(EvaluateConfig(calibration=a, ground_truth=b))
+    assert "DISAGREE" in text and "sigma units" in text
+    close = _write(tmp_path / "c.json", dx=0.01, sigma=(0.01, 0.1, 0.001), verdict="converged")
+    assert "DISAGREE" not in run_evaluate(EvaluateConfig(calibration=a, ground_truth=close))
+
+
+def test_eval_estimate_against_truth_adds_sigma_units(tmp_path):
+    from moisst_ns.cli.evaluate import EvaluateConfig, run_evaluate
+
+    est = _write(tmp_path / "est.json", dx=0.02, sigma=(0.01, 0.1, 0.001), verdict="converged")
+    truth = _write(tmp_path / "truth.json")
+    text = run_evaluate(EvaluateConfig(calibration=est, ground_truth=truth))
+    assert "errors of" in text and "error of" in text and "+2 (2.0)" in text
+    plain = _write(tmp_path / "plain.json", dx=0.02)
+    assert "sigma units" not in run_evaluate(EvaluateConfig(calibration=plain, ground_truth=truth))
+
+
+@pytest.mark.parametrize("verdict, code", [("converged", None), ("weakly observable", None), ("not converged", 3)])
+def test_calibrate_exit_status_follows_the_verdicts(tmp_path, monkeypatch, verdict, code):
+    import sys
+
+    import moisst_ns.cli.calibrate as cli
+
+    def fake_run(cfg):
+        cfg.output_dir.mkdir(parents=True, exist_ok=True)
+        _write(cfg.output_dir / "calibration.json", verdict=verdict)
+
+    monkeypatch.setattr(cli, "_run_calibration", fake_run)
+    monkeypatch.setattr(sys, "argv", ["moisst-calibrate", str(tmp_path / "data"), "--output-dir", str(tmp_path / "out")])
+    if code is None:
+        cli.main()
+    else:
+        with pytest.raises(SystemExit) as err:
+            cli.main()
+        assert err.value.code == code

@@ -146,3 +146,51 @@ def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], 
     if weak:
         return "weakly observable", f"{', '.join(weak)} weakly observable{better}", False
     return "converged", f"settled, every parameter observable{better}", False
+
+
+def parameter_difference(T_a, delta_a: float, T_b, delta_b: float) -> List[float]:
+    """The 7 parameters of ``b`` minus those of ``a``: translation (m, reference frame), the small-angle rotation
+    vector of ``R_a^T R_b`` (rad, about the sensor's own axes), time offset (s).
+
+    Args:
+        T_a: ``T_ref_sensor`` of ``a``, 4x4.
+        delta_a: its time offset, seconds.
+        T_b: ``T_ref_sensor`` of ``b``.
+        delta_b: its time offset.
+
+    Returns:
+        7 numbers in ``PARAMETERS`` order.
+    """
+    import numpy as np
+    import roma
+    import torch
+
+    a, b = np.asarray(T_a, dtype=np.float64), np.asarray(T_b, dtype=np.float64)
+    rot = roma.rotmat_to_rotvec(torch.from_numpy(a[:3, :3].T @ b[:3, :3])).numpy()
+    return [float(v) for v in b[:3, 3] - a[:3, 3]] + [float(v) for v in rot] + [float(delta_b - delta_a)]
+
+
+def sigma_units(difference: List[float], *trusts: Optional[SensorTrust]) -> List[Optional[float]]:
+    """``|difference| / sqrt(sum of the sigma^2)`` per parameter over the trusts that carry sigmas (independent
+    estimates: the variances add); None where no sigma is known or it is 0.
+
+    Args:
+        difference: ``parameter_difference`` (m, rad, s).
+        trusts: the estimates' trust fields (sigmas in m, deg, s).
+
+    Returns:
+        7 ratios (or None).
+    """
+    variances = [0.0] * 7
+    known = False
+    for trust in trusts:
+        sig = trust.sigmas() if trust is not None else None
+        if sig is None:
+            continue
+        known = True
+        for k, s in enumerate(sig):
+            s = math.radians(s) if 3 <= k < 6 else s
+            variances[k] += s * s
+    if not known:
+        return [None] * 7
+    return [abs(d) / math.sqrt(v) if v > 0 and math.isfinite(v) else None for d, v in zip(difference, variances)]
