@@ -17,10 +17,12 @@ bounds what any method can recover. Two models of what a sensor's data pins down
 
 For each parameter the *marginal* information (Schur complement of ``J^T J``: the 6 others re-fit to absorb it,
 ``stages.observability.marginal_information``) gives the RMS effect of a typical prior error (``TEST_STEPS``: 10 cm,
-1 deg, 10 ms). A parameter is weak when that effect is below ``min_effect_m`` (2 mm: a fraction of a LiDAR's range
-noise, a pixel at 10 m for a 320-pixel camera) or when re-fitting the others absorbs more than 99 % of its
-information (``separability = sqrt(marginal / own) < 0.1``: its uncertainty is inflated at least tenfold by the
-others, the "10x" of the uncertainty targets). The reason names the drive's excitation and the partners.
+1 deg, 10 ms), reported with ``separability = sqrt(marginal / own)``. Which parameters are *weak* comes from the
+eigen-directions of the information scaled by the test steps (``weak_parameters``): a combination of typical errors
+is weak when it changes the poses by less than ``min_effect_m`` (2 mm: a fraction of a LiDAR's range noise, a pixel
+at 10 m for a 320-pixel camera) or by less than a tenth of what its largest member does alone (its uncertainty is
+inflated at least tenfold, the "10x" of the uncertainty targets); every parameter with a share above ``SHARE`` in
+such a combination is weak. The reason names the drive's excitation and the partners.
 
 Pure numpy/torch/roma: nothing here imports nerfstudio.
 """
@@ -162,6 +164,40 @@ def _partners(information: Float[np.ndarray, "7 7"], i: int) -> List[str]:
     return [PARAMETERS[j] for j in np.argsort(-corr) if corr[j] > 0.5][:2]
 
 
+SHARE = 0.3
+"""A parameter takes part in a weak combination when its share of the (test-step scaled, unit) direction exceeds this."""
+
+
+def weak_parameters(information: Float[np.ndarray, "7 7"], config: DriveObservabilityConfig) -> set:
+    """Indices of the parameters that take a material part (``SHARE``) in a weak combination.
+
+    The information is scaled by ``TEST_STEPS`` (``D H D``: a unit vector is a combination of typical prior errors);
+    an eigen-direction is weak when a test-sized error along it changes the poses by less than ``min_effect_m`` RMS
+    or by less than ``min_separability`` times the effect of its largest member alone. Marginal information alone
+    would also flag a parameter that plays a tiny part in a degenerate combination (a camera's vertical lever arm
+    when the velocity has a small vertical component in its frame).
+
+    Args:
+        information: per-pose ``J^T J`` in ``PARAMETERS`` order (metres^2 per unit^2).
+        config: thresholds.
+
+    Returns:
+        Set of parameter indices.
+    """
+    scale = np.asarray(TEST_STEPS)
+    scaled = information * np.outer(scale, scale)
+    values, vectors = np.linalg.eigh(scaled)
+    own = np.sqrt(np.maximum(np.diag(scaled), 0.0))
+    out = set()
+    for value, vector in zip(values, vectors.T):
+        effect = np.sqrt(max(value, 0.0))
+        members = np.nonzero(np.abs(vector) > SHARE)[0]
+        if len(members) and (effect < config.min_effect_m or effect < config.min_separability * own[members].max()):
+            out.update(int(i) for i in members)
+    out.update(int(i) for i in np.nonzero(own < config.min_effect_m)[0])
+    return out
+
+
 def excitation(traj: ReferenceTrajectory, times: Float[np.ndarray, "num"]) -> Dict[str, float]:
     """What the drive does over ``times``: distance (m), speed range (m/s), heading/turn range and rotation about
     the reference axes (peak to peak, degrees), and the spread of the body angular rate (deg/s).
@@ -230,12 +266,13 @@ def analyse_drive(
     marginal = marginal_information(information)
     exc = excitation(traj, times)
     out = DriveObservability(sensor, model)
+    weak_set = weak_parameters(information, config)
     for i, (name, step) in enumerate(zip(PARAMETERS, TEST_STEPS)):
         own = float(information[i, i])
         effect = float(np.sqrt(marginal[i]) * step)
         separability = float(np.sqrt(marginal[i] / own)) if own > 0 else 0.0
         partners = _partners(information, i)
-        weak = bool(effect < config.min_effect_m or separability < config.min_separability)
+        weak = i in weak_set
         out.dofs.append(DriveDof(name, effect, separability, partners, weak,
                                  _reason(name, model, partners, exc, effect) if weak else ""))
     return out
