@@ -185,11 +185,14 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         ``(calibration with trust fields, JSON-ready per-sensor record, lines to print)``.
     """
     from moisst_ns.rig.format import Calibration
-    from moisst_ns.rig.trust import PARAMETERS, decide_verdict
+    from moisst_ns.rig.trust import PARAMETERS, UNCONSTRAINED, decide_verdict
     from moisst_ns.stages.observability import TEST_STEPS
 
     start = time.time()
+    from moisst_ns.runs.folder import prior_calibration
+
     rig = pipeline.model.camera_optimizer.rig
+    dataset_prior = prior_calibration(rig.data)
     measured = nerf_uncertainties(pipeline, config) if config is not None else {}
     final = Calibration(estimate.reference_sensor, dict(estimate.T_ref_sensor), dict(estimate.time_offset), {})
     drive_weak = {r.sensor: r.weak for r in drive}
@@ -209,18 +212,19 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         if sigma is not None:
             weak += [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step]
         weak = [p for p in PARAMETERS if p in weak]
-        verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []))
-        if keep_prior:
-            final.T_ref_sensor[name] = rig.data.prior_extrinsics[i].copy()
-            final.time_offset[name] = float(rig.data.prior_time_offsets[i])
+        free = [] if sigma is None else [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= UNCONSTRAINED * step]
+        verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free)
+        if keep_prior:  # the dataset's prior (rig.json), also for a LiDAR the NeRF started from the LiDAR-first estimate
+            final.T_ref_sensor[name] = np.array(dataset_prior.T_ref_sensor[name], dtype=np.float64)
+            final.time_offset[name] = float(dataset_prior.time_offset[name])
             lines.append(f"WARNING: {name}: {reason}; calibration.json keeps it")
         final.trust[name] = trust_entry(sigma, verdict, weak, reason)
-        record[name] = {"sigma": sigma, "sigma_source": source, "loss_estimate": loss_est, "loss_prior": loss_prior,
+        record[name] = {"sigma": None if sigma is None else [float(v) if np.isfinite(v) else None for v in sigma], "sigma_source": source, "loss_estimate": loss_est, "loss_prior": loss_prior,
                         "kept_prior": keep_prior, **final.trust[name].to_json()}
     head = f"{'sensor':<12}" + "".join(f"{'s_' + p:>14}" for p in PARAMETERS) + "  verdict"
     table = ["uncertainty (1 sigma: cm, deg, ms) and verdict per sensor:", head]
     for name, r in record.items():
-        cells = ["-" if r["sigma"] is None else f"{r['sigma'][k] * SIGMA_UNITS[k][0]:.3g}" for k in range(7)]
+        cells = ["-" if r["sigma"] is None else "inf" if r["sigma"][k] is None else f"{r['sigma'][k] * SIGMA_UNITS[k][0]:.3g}" for k in range(7)]
         table.append(f"{name:<12}" + "".join(f"{c:>14}" for c in cells) + f"  {r['verdict']}: {r['reason']}")
     wall = time.time() - start
     table.append(f"(sigma from {', '.join(sorted({r['sigma_source'] for r in record.values()}))}; {wall:.1f} s)")

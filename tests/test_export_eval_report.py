@@ -83,17 +83,22 @@ def run(tiny_rig, tmp_path_factory):
 
 
 def test_export_calibration_json_equals_the_model_estimate(run):
+    """The model's estimate, except the sensors moisst-calibrate reverted to their prior (verdict 'not converged',
+    'the prior is kept'): the export carries calibration.json's decision and trust fields."""
     estimate = run["pipeline"].model.camera_optimizer.rig.estimate()
     written = load_calibration(run["out"] / "calibration.json")
     assert run["step"] == 11
     assert written.reference_sensor == estimate.reference_sensor
     assert list(written.T_ref_sensor) == list(estimate.T_ref_sensor) == ["cam_front", "cam_front_right", "cam_left", "lidar"]
-    for name in estimate.T_ref_sensor:
-        assert np.array_equal(written.T_ref_sensor[name], estimate.T_ref_sensor[name])
-        assert written.time_offset[name] == estimate.time_offset[name]
-    # and it is the calibration moisst-calibrate wrote at the end of training
     calibrated = load_calibration(run["config"].parents[2] / "calibration.json")
+    assert set(calibrated.trust) == {"cam_front_right", "cam_left", "lidar"} and calibrated.trust == written.trust
+    prior = folder.prior_calibration(run["pipeline"].model.camera_optimizer.rig.data)
     for name in estimate.T_ref_sensor:
+        kept = name in written.trust and "prior is kept" in written.trust[name].reason
+        expected = prior if kept else estimate  # rig.json's prior (for a LiDAR too, not the LiDAR-first estimate)
+        assert np.array_equal(written.T_ref_sensor[name], expected.T_ref_sensor[name]), name
+        assert written.time_offset[name] == expected.time_offset[name]
+        # and it is the calibration moisst-calibrate wrote at the end of training
         assert np.allclose(calibrated.T_ref_sensor[name], written.T_ref_sensor[name], atol=1e-9)
 
 

@@ -123,6 +123,16 @@ def test_trust_fields_round_trip(tmp_path):
     assert (tmp_path / "d.json").read_text() == (tmp_path / "c.json").read_text()
 
 
+def test_unconstrained_sigma_round_trips_as_null(tmp_path):
+    calib = Calibration("a", {"a": np.eye(4), "b": np.eye(4)}, {"a": 0.0, "b": 0.0},
+                        {"b": SensorTrust([np.inf, 0.1, 0.1], [0.1, 0.1, 0.1], np.inf, "weakly observable", ["x"], "r")})
+    calib.write(tmp_path / "c.json")
+    raw = json.loads((tmp_path / "c.json").read_text())
+    assert raw["sensors"]["b"]["uncertainty"]["translation_m"][0] is None
+    assert raw["sensors"]["b"]["uncertainty"]["time_offset_s"] is None
+    assert load_calibration(tmp_path / "c.json").trust["b"].sigmas()[0] == np.inf
+
+
 def test_old_files_load_and_bad_trust_fields_name_the_field(tmp_path):
     old = {"reference_sensor": "a", "sensors": {"a": {"T_ref_sensor": np.eye(4).tolist()}, "b": {"T_ref_sensor": np.eye(4).tolist(), "time_offset": 0.1}}}
     (tmp_path / "old.json").write_text(json.dumps(old))
@@ -148,9 +158,10 @@ def test_old_files_load_and_bad_trust_fields_name_the_field(tmp_path):
     (None, 0.03, 0.02, ["z"], [], "not converged", True),
     (None, 0.01, 0.02, [], ["time offset"], "not converged", False),
     (None, None, None, [], [], "converged", False),          # no held-back loss (LiDAR-first sensor)
+    (None, None, None, ["x"], [], "not converged", True),     # x unconstrained (sigma inf): the estimate is arbitrary
 ])
 def test_verdict_rules(moving, loss_est, loss_prior, weak, hit, verdict, keep_prior):
-    got, reason, keep = decide_verdict(moving, loss_est, loss_prior, weak, hit)
+    got, reason, keep = decide_verdict(moving, loss_est, loss_prior, weak, hit, weak if keep_prior and loss_est is None else [])
     assert (got, keep) == (verdict, keep_prior)
     assert reason and "\n" not in reason
 

@@ -20,6 +20,8 @@ PARAMETERS = ("x", "y", "z", "roll", "pitch", "yaw", "time_offset")
 VERDICTS = ("converged", "not converged", "weakly observable")
 """``not converged``: still moving, or the held-back loss at the estimate no better than at the prior;
 ``weakly observable``: converged but some parameters (``weak``) are not constrained by the data."""
+UNCONSTRAINED = 100.0
+"""A sigma beyond this many typical prior errors (10 m, 100 deg, 1 s) means the data do not determine the parameter."""
 TRUST_KEYS = ("uncertainty", "verdict", "weak", "reason")
 
 
@@ -57,8 +59,8 @@ class SensorTrust:
     def to_json(self) -> dict:
         out: dict = {}
         if self.sigmas() is not None:
-            out["uncertainty"] = {"translation_m": [float(v) for v in self.translation_m],
-                                  "rotation_deg": [float(v) for v in self.rotation_deg], "time_offset_s": float(self.time_offset_s)}
+            out["uncertainty"] = {"translation_m": [_json_sigma(v) for v in self.translation_m],
+                                  "rotation_deg": [_json_sigma(v) for v in self.rotation_deg], "time_offset_s": _json_sigma(self.time_offset_s)}
         if self.verdict is not None:
             out["verdict"] = self.verdict
             out["weak"] = list(self.weak)
@@ -66,9 +68,16 @@ class SensorTrust:
         return out
 
 
+def _json_sigma(value: float) -> Optional[float]:
+    """A sigma for JSON: ``null`` for an unconstrained (infinite) one."""
+    return float(value) if math.isfinite(value) else None
+
+
 def _sigma(value, fieldname: str) -> float:
+    if value is None:
+        return math.inf  # null: not constrained by the data
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-        raise TrustFieldError(fieldname, f"must be a finite number >= 0, got {value!r}")
+        raise TrustFieldError(fieldname, f"must be a finite number >= 0 (or null: unconstrained), got {value!r}")
     return float(value)
 
 
@@ -119,7 +128,7 @@ def parse_trust(entry: dict) -> Optional[SensorTrust]:
 
 
 def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], loss_prior: Optional[float],
-                   weak: List[str], hit_bounds: List[str]) -> tuple:
+                   weak: List[str], hit_bounds: List[str], unconstrained: Optional[List[str]] = None) -> tuple:
     """The verdict of one sensor, its one-line reason, and whether to keep the prior instead of the estimate.
 
     Args:
@@ -129,11 +138,16 @@ def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], 
         loss_prior: the same at the prior.
         weak: weakly observable parameters (drive and data).
         hit_bounds: the bounds its estimate ran into.
+        unconstrained: parameters the data do not determine at all (sigma infinite or beyond ``UNCONSTRAINED``
+            times the typical prior error): the estimate of them is arbitrary.
 
     Returns:
         ``(verdict, reason, keep_prior)``: ``keep_prior`` when the held-back loss at the estimate is no better than at
-        the prior (a calibration never silently ends worse than it started).
+        the prior, or some parameter is unconstrained (a calibration never silently ends worse than it started).
     """
+    if unconstrained:
+        return ("not converged", f"{', '.join(unconstrained)} not determined by the data (sigma beyond {UNCONSTRAINED:g}x a "
+                "typical prior error): the prior is kept", True)
     if loss_estimate is not None and loss_prior is not None and not loss_estimate < loss_prior:
         return ("not converged", f"held-back loss {loss_estimate:.5g} at the estimate is no better than {loss_prior:.5g} "
                 "at the prior: the prior is kept", True)
