@@ -73,12 +73,24 @@ def _draw_pixels(datamanager, frames: List[int], count: int, generator: torch.Ge
     return torch.cat(indices), torch.cat(colours)
 
 
+def _ray_generator(datamanager):
+    """The training ray generator (built when the pipeline was loaded for inference, which sets up none)."""
+    generator = getattr(datamanager, "train_ray_generator", None)
+    if generator is None:
+        from nerfstudio.model_components.ray_generators import RayGenerator
+
+        generator = RayGenerator(datamanager.train_dataset.cameras.to(datamanager.device))
+        datamanager.train_ray_generator = generator
+    return generator
+
+
 @torch.no_grad()
 def _render(model, datamanager, indices: torch.Tensor, chunk: int) -> torch.Tensor:
     """Colours of the pixels ``indices`` at the current calibration (eval mode: the caller re-poses the rays)."""
     out = []
+    generator = _ray_generator(datamanager)
     for start in range(0, len(indices), chunk):
-        bundle = datamanager.train_ray_generator(indices[start:start + chunk].to(model.device))
+        bundle = generator(indices[start:start + chunk].to(model.device))
         model.camera_optimizer.apply_to_raybundle(bundle)
         out.append(model(bundle)["rgb"].float().cpu())
     return torch.cat(out)
