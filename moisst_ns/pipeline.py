@@ -84,6 +84,10 @@ class CalibrateConfig:
     """After the LiDAR-first stage, let the calibrated LiDARs' metric depth (``--depth-loss-per-m2``, default 5 per
     m^2) shape the scene from step 0 over their whole scan (an experiment of the metric-scene issue: on the
     50-frame rig it helped the side camera's translation and hurt its rotation; docs/method.md)."""
+    uncertainty: bool = True
+    """After training, measure every camera's 7 standard deviations and its held-back loss against the prior
+    (``moisst_ns.uncertainty``; a few seconds per camera): into calibration.json with a verdict per sensor.
+    --no-uncertainty: verdicts from the history and the drive only, no sigma for the NeRF's cameras."""
     lidar_first: bool = True
     """Calibrate every LiDAR from its own scans before the NeRF (``moisst-lidar-calibrate``, into OUT/lidar_first);
     the NeRF starts from that estimate, holds the LiDARs there and lets their depth shape the scene.
@@ -191,6 +195,11 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         config.load_dir = checkpoints
     config.save_config()
 
+    from moisst_ns.stages.drive_observability import analyse_rig_drive, drive_json, drive_table
+
+    drive = analyse_rig_drive(rig, lidar_first=cfg.lidar_first)
+    print("\n".join(drive_table(drive)))
+
     truth_file = rig.root / "ground_truth.json"
     truth = load_calibration(truth_file) if truth_file.is_file() else None
     prior = Calibration.from_rig(rig)
@@ -252,6 +261,15 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     for name, spread in moving.items():
         print(f"WARNING: {name} is still moving over its last estimates ({spread}); run longer or check the data")
     summary["still_moving"] = moving
+    from moisst_ns.uncertainty import UncertaintyConfig, assess_run
+
+    final, summary["trust"], lines = assess_run(trainer.pipeline, estimate, stage, drive, moving, summary.get("hit_bounds", {}),
+                                                UncertaintyConfig(seed=cfg.seed) if cfg.uncertainty else None)
+    summary["drive_observability"] = drive_json(drive)
+    print("\n".join(lines))
+    final.write(out / "calibration.json")
+    if truth is not None:
+        summary["errors_final"] = {k: v for k, v in calibration_report_errors(final, truth).items() if k != truth.reference_sensor}
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     if cfg.report:
         from moisst_ns.report import write_report

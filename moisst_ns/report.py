@@ -392,6 +392,7 @@ def write_report(
     else:
         lines += [f"No history: {history_problem}", ""]
 
+    lines += trust_lines(config_path, calib.estimate())
     lines += ["## (a) LiDAR points on camera images: prior vs calibrated", ""]
     if not has_lidar:
         lines += ["The rig has no LiDAR: no LiDAR projections (sections a and b are skipped).", ""]
@@ -419,3 +420,18 @@ def write_report(
     report = out_dir / "report.md"
     report.write_text("\n".join(lines))
     return report
+
+
+def trust_lines(config_path: Path, estimate) -> List[str]:
+    """report.md's uncertainty section: sigma, verdict and reason per sensor from moisst-calibrate's calibration.json
+    (``runs.folder.run_trust``); empty when the run has none."""
+    from moisst_ns.runs.folder import run_trust, summary_markdown
+
+    trusted = run_trust(config_path, estimate)
+    if not trusted.trust:
+        return []
+    table = summary_markdown({"reference_sensor": trusted.reference_sensor,
+                              "sensors": {n: {"trust": t.to_json()} for n, t in trusted.trust.items()}}, only_trust=True)
+    return table.splitlines() + ["Verdicts: `converged`, `weakly observable` (see weak), `not converged` (moisst-calibrate exits "
+                                 "with status 3; docs/uncertainty.md).", ""]
+

@@ -83,17 +83,22 @@ def run(tiny_rig, tmp_path_factory):
 
 
 def test_export_calibration_json_equals_the_model_estimate(run):
+    """The model's estimate, except the sensors moisst-calibrate reverted to their prior (verdict 'not converged',
+    'the prior is kept'): the export carries calibration.json's decision and trust fields."""
     estimate = run["pipeline"].model.camera_optimizer.rig.estimate()
     written = load_calibration(run["out"] / "calibration.json")
     assert run["step"] == 11
     assert written.reference_sensor == estimate.reference_sensor
     assert list(written.T_ref_sensor) == list(estimate.T_ref_sensor) == ["cam_front", "cam_front_right", "cam_left", "lidar"]
-    for name in estimate.T_ref_sensor:
-        assert np.array_equal(written.T_ref_sensor[name], estimate.T_ref_sensor[name])
-        assert written.time_offset[name] == estimate.time_offset[name]
-    # and it is the calibration moisst-calibrate wrote at the end of training
     calibrated = load_calibration(run["config"].parents[2] / "calibration.json")
+    assert set(calibrated.trust) == {"cam_front_right", "cam_left", "lidar"} and calibrated.trust == written.trust
+    prior = folder.prior_calibration(run["pipeline"].model.camera_optimizer.rig.data)
     for name in estimate.T_ref_sensor:
+        kept = name in written.trust and "prior is kept" in written.trust[name].reason
+        expected = prior if kept else estimate  # rig.json's prior (for a LiDAR too, not the LiDAR-first estimate)
+        assert np.array_equal(written.T_ref_sensor[name], expected.T_ref_sensor[name]), name
+        assert written.time_offset[name] == expected.time_offset[name]
+        # and it is the calibration moisst-calibrate wrote at the end of training
         assert np.allclose(calibrated.T_ref_sensor[name], written.T_ref_sensor[name], atol=1e-9)
 
 
@@ -114,7 +119,8 @@ def test_rig_calibrated_json_is_valid_next_to_the_dataset(run, tmp_path):
             assert sensor.time_offset == estimate.time_offset[name]
             assert sensor.intrinsics == original.sensors[name].intrinsics
     moved = [n for n in original.sensors if not np.array_equal(original.sensors[n].T_ref_sensor, estimate.T_ref_sensor[n])]
-    assert moved == ["cam_front_right", "cam_left", "lidar"]
+    kept = [n for n, t in estimate.trust.items() if "prior is kept" in t.reason]  # moisst-calibrate reverted them
+    assert moved == [n for n in ("cam_front_right", "cam_left", "lidar") if n not in kept]
     with pytest.raises(RigFormatError, match="file not found"):  # away from the dataset its paths do not resolve
         load_rig(run["out"] / "rig.calibrated.json")
 
@@ -124,7 +130,7 @@ def test_summary_json_estimates_and_change_from_prior(run):
 
     summary = json.loads((run["out"] / "summary.json").read_text())
     calib = run["pipeline"].model.camera_optimizer.rig
-    estimate = calib.estimate()
+    estimate = load_calibration(run["out"] / "calibration.json")  # the model's, or the prior where moisst-calibrate kept it
     assert summary["reference_sensor"] == "cam_front" and summary["run"]["step"] == 11
     assert set(summary["errors_after"]) == {"cam_front_right", "cam_left", "lidar"}
     from moisst_ns.runs.folder import prior_calibration
@@ -148,8 +154,12 @@ def test_summary_json_estimates_and_change_from_prior(run):
         assert entry["change"]["translation_cm"] == pytest.approx(shift, abs=1e-9)
         if name == "cam_front":
             assert entry["change"]["rotation_deg"] == 0 and entry["change"]["translation_cm"] == 0
-        else:
+        elif name not in estimate.trust or "prior is kept" not in estimate.trust[name].reason:
             assert entry["change"]["rotation_deg"] > 1e-4 and entry["change"]["translation_cm"] > 1e-3
+        else:
+            assert entry["change"]["rotation_deg"] == 0 and entry["change"]["translation_cm"] == 0
+        if name != "cam_front":
+            assert entry["trust"]["verdict"] == estimate.trust[name].verdict
     markdown = (run["out"] / "summary.md").read_text()
     assert "## Change from the prior" in markdown and "| lidar | lidar |" in markdown
 

@@ -49,6 +49,8 @@ def test_saved_run_loads_and_gives_the_same_calibration(short_run):
     loaded = pipeline.model.camera_optimizer.rig.estimate()
     written = load_calibration(out / "calibration.json")
     for name in written.T_ref_sensor:
+        if name in written.trust and "prior is kept" in written.trust[name].reason:
+            continue  # moisst-calibrate kept its prior (docs/uncertainty.md); the checkpoint holds the estimate
         assert np.allclose(loaded.T_ref_sensor[name], written.T_ref_sensor[name], atol=1e-9)
         assert loaded.time_offset[name] == pytest.approx(written.time_offset[name], abs=1e-12)
 

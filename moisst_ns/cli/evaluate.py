@@ -2,6 +2,11 @@
 
 * ``moisst-eval CALIBRATION.json GROUND_TRUTH.json [--json]``: per non-reference sensor, translation error (cm, L2),
   rotation error (deg, geodesic) and time error (ms, absolute) (``calibration_report_errors``).
+* ``moisst-eval A/calibration.json B/calibration.json``: when the *second* file carries ``uncertainty`` fields it
+  is another estimate, not the truth (a ground-truth file never has them): per sensor, the difference B - A of each
+  of the 7 parameters and its size in units of the combined sigma ``sqrt(sA^2 + sB^2)`` (two independent estimates,
+  e.g. the two halves of a drive: agreement means |d| / sigma <= 3). With a truth as second file and sigmas in the
+  first, the errors table is followed by each parameter's error in the estimate's sigma units.
 * ``moisst-eval --history RUN_DIR [--last N] [--columns all|errors|estimates] [--json]``: per sensor, mean and
   standard deviation (population, numpy's default ``ddof=0``) of the last N logged rows of
   ``RUN_DIR/calibration_history.csv``: the error columns (when logged, i.e. the dataset has ground truth) and the
@@ -89,10 +94,74 @@ def run_evaluate(cfg: EvaluateConfig) -> str:
         return json.dumps(stats, indent=1) if cfg.as_json else format_stats_table(stats, cfg.last)
     if cfg.calibration is None or cfg.ground_truth is None:
         raise RunError("expected CALIBRATION.json GROUND_TRUTH.json, or --history RUN_DIR")
+    rows = sigma_table(cfg.calibration, cfg.ground_truth)
+    if rows["second_is_estimate"]:
+        return json.dumps(rows, indent=1) if cfg.as_json else format_sigma_table(rows)
     errors = compare_files(cfg.calibration, cfg.ground_truth)
     if cfg.as_json:
-        return json.dumps(errors, indent=1)
-    return format_error_table(f"errors of {cfg.calibration} against {cfg.ground_truth}:", errors)
+        return json.dumps(errors, indent=1)  # unchanged schema; the sigma units are in the table and sigma_table
+    text = format_error_table(f"errors of {cfg.calibration} against {cfg.ground_truth}:", errors)
+    return text + ("\n" + format_sigma_table(rows) if rows["sensors"] else "")
+
+
+def sigma_table(first: Path, second: Path) -> dict:
+    """Per sensor, the 7 parameter differences ``second - first`` (cm, deg, ms) and their size in sigma units.
+
+    Args:
+        first: calibration.json (an estimate).
+        second: another estimate (it carries ``uncertainty``) or the truth.
+
+    Returns:
+        ``{"second_is_estimate": bool, "sensors": {name: {"difference": [7] (second - first; first - truth when the
+        second is the truth), "sigma_units": [7 or None],
+        "verdicts": [a, b]}}}``; ``sensors`` empty when no file carries sigmas.
+
+    Raises:
+        RunError: unreadable file or another reference sensor.
+    """
+    from moisst_ns.rig.format import RigFormatError, load_calibration
+    from moisst_ns.rig.trust import parameter_difference, sigma_units
+
+    try:
+        a, b = load_calibration(first), load_calibration(second)
+    except RigFormatError as err:
+        raise RunError(str(err)) from None
+    if a.reference_sensor != b.reference_sensor:
+        raise RunError(f"{first}: reference_sensor: {a.reference_sensor!r}, but {second} has {b.reference_sensor!r}")
+    second_is_estimate = any(t.sigmas() is not None for t in b.trust.values())
+    sensors = {}
+    for name in a.T_ref_sensor:
+        if name == a.reference_sensor or name not in b.T_ref_sensor:
+            continue
+        trusts = [a.trust.get(name)] + ([b.trust.get(name)] if second_is_estimate else [])
+        diff = parameter_difference(a.T_ref_sensor[name], a.time_offset[name], b.T_ref_sensor[name], b.time_offset[name])
+        if not second_is_estimate:
+            diff = [-d for d in diff]  # the error of the estimate: first - truth
+        units = sigma_units(diff, *trusts)
+        if all(u is None for u in units):
+            continue
+        scale = [100.0] * 3 + [57.29577951308232] * 3 + [1000.0]
+        sensors[name] = {"difference": [d * s for d, s in zip(diff, scale)], "sigma_units": units,
+                         "verdicts": [t.verdict if t is not None else None for t in (a.trust.get(name), b.trust.get(name))]}
+    if second_is_estimate and not sensors:
+        raise RunError(f"{first}: sensors: no non-reference sensor in common with {second}")
+    return {"first": str(first), "second": str(second), "second_is_estimate": second_is_estimate, "sensors": sensors}
+
+
+def format_sigma_table(rows: dict) -> str:
+    """Fixed-width table of ``sigma_table``: difference (cm, deg, ms) and |difference| / sigma per parameter."""
+    from moisst_ns.rig.trust import PARAMETERS
+
+    what = (f"difference {rows['second']} - {rows['first']}" if rows["second_is_estimate"]
+            else f"error of {rows['first']} (minus {rows['second']})")
+    lines = [f"{what} in sigma units (cm, deg, ms; |d|/sigma in brackets; "
+             "> 3 disagrees):", f"{'sensor':<14}" + "".join(f"{p:>18}" for p in PARAMETERS) + "  verdicts"]
+    for name, r in rows["sensors"].items():
+        cells = [f"{d:+.3g} ({'-' if u is None else f'{u:.1f}'})" for d, u in zip(r["difference"], r["sigma_units"])]
+        worst = max((u for u in r["sigma_units"] if u is not None), default=0.0)
+        lines.append(f"{name:<14}" + "".join(f"{c:>18}" for c in cells) + f"  {' / '.join(str(v) for v in r['verdicts'])}"
+                     + ("  DISAGREE" if worst > 3 else ""))
+    return "\n".join(lines)
 
 
 def main() -> None:

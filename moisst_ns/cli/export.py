@@ -12,6 +12,9 @@ Writes, from the run's checkpoint (not from a file the run left behind):
 * ``OUT/summary.json`` and ``OUT/summary.md``: per sensor x, y, z (m), roll, pitch, yaw (deg), delta (ms), the
   change from the prior, and, when the dataset ships ``ground_truth.json``, the errors before and after.
 
+When the run's ``OUT/calibration.json`` (moisst-calibrate's) matches the checkpoint, its per-sensor sigma, verdict,
+weak parameters and reason (and any prior it kept) are exported too (``runs.folder.run_trust``).
+
 Nothing is written into the dataset folder (an output folder inside it is refused). Errors are one line,
 ``moisst-export: error: ...``, exit status 2.
 """
@@ -37,6 +40,7 @@ from moisst_ns.runs.folder import (
     open_run,
     prior_calibration,
     resolve_config_path,
+    run_trust,
     summary_markdown,
 )
 
@@ -64,7 +68,7 @@ def run_export(cfg: ExportConfig) -> Path:
     check_output_dir(cfg.output_dir, dataset_of(config))
     config, pipeline, step, rig = open_run(config_path)
     calib = pipeline.model.camera_optimizer.rig
-    estimate = calib.estimate()
+    estimate = run_trust(config_path, calib.estimate())
     prior = prior_calibration(calib.data)
     truth_file = rig.root / "ground_truth.json"
     try:

@@ -87,15 +87,16 @@ class SynthConfig:
     no times (``.npz`` points only)."""
     lidar_noise: float = 0.0
     """Standard deviation of Gaussian range noise on every LiDAR point, metres (0: exact ranges)."""
+    drive: Literal["curve", "straight", "weave"] = "curve"
+    """Vehicle path: 'curve' (one turn and back, speed 4-9 m/s, small pitch/roll/bounce), 'straight' (constant 6.5
+    m/s on a flat straight line: delta and the along-track lever arm cannot be separated) or 'weave' (heading
+    swinging every 4 s at the curve's varying speed)."""
     overwrite: bool = False
     """Replace the generator's outputs in a non-empty OUT (other files there are left alone)."""
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # Small rotation helpers (numpy, float64)
-
-
-
 
 
 
@@ -149,14 +150,13 @@ def paper_perturbation(T_ref_sensor: np.ndarray, time_offset: float, signs: Sequ
 # Vehicle path
 
 
-
-
 def make_path(config: SynthConfig) -> VehiclePath:
     """The vehicle path of a configuration (seeded turn direction and oscillation phases)."""
     rng = np.random.default_rng(_streams(config.seed)["path"])
     turn = np.deg2rad(rng.uniform(38.0, 50.0)) * rng.choice([-1.0, 1.0])
     duration = (config.frames - 1) * PERIOD
-    return VehiclePath(turn=float(turn), phases=rng.uniform(0, 2 * np.pi, 3), t_min=-10.0, t_max=duration + 14.0)
+    return VehiclePath(turn=float(turn), phases=rng.uniform(0, 2 * np.pi, 3), t_min=-10.0, t_max=duration + 14.0,
+                       drive=config.drive)
 
 
 def _streams(seed: int) -> Dict[str, np.random.SeedSequence]:
@@ -474,7 +474,7 @@ def make_rig(config: SynthConfig) -> Path:
     sensors = {name: (sensor.type, priors[name][0], priors[name][1], intr if sensor.type == "camera" else {})
                for name, sensor in truth.items()}
     meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")}
-    for key, default in (("lidar_scans", "raw"), ("lidar_noise", 0.0)):  # recorded when used (older rigs stay byte-identical)
+    for key, default in (("lidar_scans", "raw"), ("lidar_noise", 0.0), ("drive", "curve")):  # recorded when used (older rigs stay byte-identical)
         if meta[key] == default:
             del meta[key]
     meta["generator"] = "moisst-synth"

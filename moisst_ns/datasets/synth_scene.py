@@ -288,7 +288,10 @@ class VehiclePath:
 
     Time ``t`` is seconds since the first reference frame. Heading ``psi(t) = turn (1 - cos(pi t / 5)) / 2`` (0 to
     ``turn`` over 5 s and back), speed ``v(t) = 6.5 - 2.5 cos(pi t / 5)`` (4 to 9 m/s and back), plus small pitch,
-    roll and bounce oscillations so every rotation axis moves a little.
+    roll and bounce oscillations so every rotation axis moves a little (``drive="curve"``, the default).
+    ``drive="straight"``: heading 0 and speed 6.5 m/s throughout, no oscillation (flat, constant twist: a time offset
+    cannot be told from the lever arm along the direction of travel). ``drive="weave"``: the heading swings by
+    ``+-|turn| / 3`` with period 4 s at the curve's varying speed and oscillations (the twist keeps changing).
     """
 
     turn: float
@@ -298,6 +301,8 @@ class VehiclePath:
     t_min: float
     t_max: float
     dt: float = 1e-3
+    drive: str = "curve"
+    """``curve``, ``straight`` or ``weave`` (see above)."""
 
     def __post_init__(self):
         self.grid = np.arange(int(round((self.t_max - self.t_min) / self.dt)) + 1) * self.dt + self.t_min
@@ -311,9 +316,15 @@ class VehiclePath:
         self.arclength -= np.interp(0.0, self.grid, self.arclength)
 
     def heading(self, t):
+        if self.drive == "straight":
+            return np.zeros_like(np.asarray(t, dtype=np.float64))
+        if self.drive == "weave":
+            return abs(self.turn) / 3.0 * np.sin(2 * np.pi * np.asarray(t) / 4.0)
         return self.turn * 0.5 * (1.0 - np.cos(np.pi * np.asarray(t) / 5.0))
 
     def speed(self, t):
+        if self.drive == "straight":
+            return np.full_like(np.asarray(t, dtype=np.float64), 6.5)
         return 6.5 - 2.5 * np.cos(np.pi * np.asarray(t) / 5.0)
 
     def world_T_vehicle(self, t: np.ndarray) -> np.ndarray:
@@ -324,6 +335,8 @@ class VehiclePath:
         pitch = np.deg2rad(0.6) * np.sin(2 * np.pi * t / 1.7 + p1) - 0.004 * np.sin(np.pi * t / 5.0)
         roll = np.deg2rad(0.5) * np.sin(2 * np.pi * t / 2.3 + p2)
         bounce = 0.02 * np.sin(2 * np.pi * t / 1.3 + p3)
+        if self.drive == "straight":
+            pitch, roll, bounce = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
         poses = np.zeros(t.shape + (4, 4))
         for i in range(t.shape[0]):
             poses[i, :3, :3] = rot_z(psi[i]) @ rot_y(pitch[i]) @ rot_x(roll[i])

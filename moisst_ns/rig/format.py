@@ -16,6 +16,8 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from moisst_ns.rig.trust import SensorTrust, TrustFieldError, parse_trust
+
 FORMAT = "moisst-rig/1"
 SENSOR_TYPES = ("camera", "lidar")
 CAMERA_MODELS = ("PINHOLE", "OPENCV")
@@ -390,12 +392,15 @@ class Calibration:
     reference_sensor: str
     T_ref_sensor: Dict[str, np.ndarray]
     time_offset: Dict[str, float]
+    trust: Dict[str, SensorTrust] = field(default_factory=dict)
+    """Optional per-sensor uncertainty and verdict (``moisst_ns.rig.trust``); absent in older files."""
 
     def to_json(self) -> dict:
         return {
             "reference_sensor": self.reference_sensor,
             "sensors": {
-                n: {"T_ref_sensor": np.asarray(self.T_ref_sensor[n]).tolist(), "time_offset": float(self.time_offset[n])}
+                n: {"T_ref_sensor": np.asarray(self.T_ref_sensor[n]).tolist(), "time_offset": float(self.time_offset[n]),
+                    **(self.trust[n].to_json() if n in self.trust else {})}
                 for n in self.T_ref_sensor
             },
         }
@@ -425,14 +430,20 @@ def load_calibration(path: Path | str) -> Calibration:
             raise RigFormatError(file, key, "missing")
     if not isinstance(raw["sensors"], dict) or not isinstance(raw["reference_sensor"], str) or raw["reference_sensor"] not in raw["sensors"]:
         raise RigFormatError(file, "reference_sensor", f"{raw['reference_sensor']!r} is not in sensors")
-    transforms, offsets = {}, {}
+    transforms, offsets, trust = {}, {}, {}
     for name, entry in raw["sensors"].items():
         check_name(name, file, f"sensors.{name}")
         if not isinstance(entry, dict) or "T_ref_sensor" not in entry:
             raise RigFormatError(file, f"sensors.{name}.T_ref_sensor", "missing")
         transforms[name] = parse_rigid(entry["T_ref_sensor"], file, f"sensors.{name}.T_ref_sensor")
         offsets[name] = _number(entry.get("time_offset", 0.0), file, f"sensors.{name}.time_offset")
-    return Calibration(raw["reference_sensor"], transforms, offsets)
+        try:
+            found = parse_trust(entry)
+        except TrustFieldError as err:
+            raise RigFormatError(file, f"sensors.{name}.{err.field}", err.problem) from None
+        if found is not None:
+            trust[name] = found
+    return Calibration(raw["reference_sensor"], transforms, offsets, trust)
 
 
 def load_lidar_scan(path: Path | str, min_range: float = 0.0) -> Tuple[np.ndarray, Optional[np.ndarray], int]:

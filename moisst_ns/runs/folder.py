@@ -7,7 +7,7 @@ A run folder is what ``moisst-calibrate`` / ``ns-train moisst*`` leave: ``RUN/co
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -248,6 +248,9 @@ def build_summary(estimate: Calibration, prior: Calibration, types: Dict[str, st
             "prior": pri,
             "change": change_from_prior(est, pri, estimate.T_ref_sensor[name], prior.T_ref_sensor[name]),
         }
+    for name, trust in getattr(estimate, "trust", {}).items():
+        if name in sensors:
+            sensors[name]["trust"] = trust.to_json()
     summary = {"reference_sensor": estimate.reference_sensor, "sensors": sensors}
     if truth is not None:
         skip = {truth.reference_sensor}
@@ -256,10 +259,12 @@ def build_summary(estimate: Calibration, prior: Calibration, types: Dict[str, st
     return summary
 
 
-def summary_markdown(summary: dict) -> str:
-    """summary.md: the tables of ``build_summary`` as Markdown."""
+def summary_markdown(summary: dict, only_trust: bool = False) -> str:
+    """summary.md: the tables of ``build_summary`` as Markdown (``only_trust``: just the uncertainty table)."""
     run = summary.get("run", {})
     lines = ["# Calibration summary", ""]
+    if only_trust:
+        return "\n".join(_trust_markdown(summary))
     if run:
         lines += [f"Run `{run.get('config')}`, step {run.get('step')}, dataset `{run.get('dataset')}`.", ""]
     lines += [f"Reference sensor: `{summary['reference_sensor']}` (identity, delta 0). Units: metres, degrees "
@@ -281,6 +286,7 @@ def summary_markdown(summary: dict) -> str:
         lines.append(f"| {name} | {c['x']:.4f} | {c['y']:.4f} | {c['z']:.4f} | {c['roll']:.3f} | {c['pitch']:.3f} | "
                      f"{c['yaw']:.3f} | {c['delta_ms']:.2f} | {c['translation_cm']:.2f} | {c['rotation_deg']:.3f} |")
     lines.append("")
+    lines += _trust_markdown(summary)
     if "errors_after" in summary:
         lines += ["## Errors against ground_truth.json", "",
                   "| sensor | translation (cm) before | after | rotation (deg) before | after | time (ms) before | after |",
@@ -291,6 +297,56 @@ def summary_markdown(summary: dict) -> str:
                          f"{after['rotation_deg']:.3f} | {before['time_ms']:.2f} | {after['time_ms']:.2f} |")
         lines.append("")
     return "\n".join(lines)
+
+
+def run_trust(config_path: Path, estimate: Calibration, tolerance: float = 1e-6) -> Calibration:
+    """The estimate with the trust fields ``moisst-calibrate`` wrote for this run (``OUT/calibration.json``, three
+    folders above ``OUT/<method>/run/config.yml``), and the priors it kept for sensors no better than them.
+
+    The file is used only when every sensor it did not revert agrees with the checkpoint's estimate (same run, same
+    step); otherwise (a run trained further, or none) the estimate comes back unchanged.
+
+    Args:
+        config_path: the run's config.yml.
+        estimate: the checkpoint's calibration.
+        tolerance: largest difference of a matrix entry / time offset counted as equal.
+
+    Returns:
+        The calibration to export.
+    """
+    from moisst_ns.rig.format import RigFormatError, load_calibration
+
+    file = Path(config_path).resolve().parent.parent.parent / "calibration.json"
+    try:
+        written = load_calibration(file) if file.is_file() else None
+    except RigFormatError:
+        return estimate
+    if written is None or not written.trust or set(written.T_ref_sensor) != set(estimate.T_ref_sensor):
+        return estimate
+    for name in estimate.T_ref_sensor:
+        kept = "prior is kept" in written.trust[name].reason if name in written.trust else False
+        same = (np.abs(np.asarray(written.T_ref_sensor[name]) - estimate.T_ref_sensor[name]).max() <= tolerance
+                and abs(written.time_offset[name] - estimate.time_offset[name]) <= tolerance)
+        if not (same or kept):
+            return estimate
+    return written
+
+
+def _trust_markdown(summary: dict) -> List[str]:
+    """The uncertainty / verdict table of the sensors whose summary entry has ``trust`` (none: no lines)."""
+    trusted = {n: s["trust"] for n, s in summary["sensors"].items() if s.get("trust")}
+    lines: List[str] = []
+    if trusted:
+        lines += ["## Uncertainty (1 sigma) and verdict", "",
+                  "| sensor | sx (cm) | sy | sz | s roll (deg) | s pitch | s yaw | s delta (ms) | verdict | weak | reason |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---|---|---|"]
+        for name, t in trusted.items():
+            u = t.get("uncertainty")
+            cells = (["-"] * 7 if u is None else [f"{100 * v:.3g}" for v in u["translation_m"]] + [f"{v:.3g}" for v in u["rotation_deg"]]
+                     + [f"{1000 * u['time_offset_s']:.3g}"])
+            lines.append(f"| {name} | " + " | ".join(cells) + f" | {t.get('verdict', '')} | {', '.join(t.get('weak', []))} | {t.get('reason', '')} |")
+        lines.append("")
+    return lines
 
 
 def calibrated_rig_json(rig: Rig, estimate: Calibration, comment: str) -> dict:

@@ -1,0 +1,331 @@
+"""Which of a sensor's 7 calibration parameters the drive itself can separate, before any training.
+
+A sensor's frames are taken at ``world_T_i(t) = Traj(t + delta) . T_ref_i`` (rig format eq. 2). Whatever the
+sensor measures, calibration can only see a parameter through what it does to that pose trajectory, so the drive
+bounds what any method can recover. Two models of what a sensor's data pins down:
+
+* ``absolute`` (cameras in the NeRF): the sensor is registered against a scene anchored by the reference sensor, so
+  its *world pose* at every frame is what is measured. Residuals: the pose change of every frame, position in metres
+  and orientation as the displacement (metres) of a point ``scene_depth_m`` away. Under a constant body twist
+  ``Traj(t + delta) = Traj(t) . Exp(xi delta)``: a time offset is then exactly a fixed extrinsic change (a straight
+  constant-speed drive trades delta against the lever arm along the direction of travel, a constant-rate circle
+  also against the rotation about the turn axis).
+* ``relative`` (LiDARs in the LiDAR-first stage: scans registered to each other): only the sensor's *motion*
+  between its frames is seen (hand-eye calibration). Residuals: the change of the relative pose between frame
+  pairs up to ``max_lag_s`` apart. A lever arm shows only through rotations about the other axes (a flat drive
+  leaves the vertical weak), a time offset only through changes of the twist.
+
+For each parameter the *marginal* information (Schur complement of ``J^T J``: the 6 others re-fit to absorb it,
+``stages.observability.marginal_information``) gives the RMS effect of a typical prior error (``TEST_STEPS``: 10 cm,
+1 deg, 10 ms), reported with ``separability = sqrt(marginal / own)``. Which parameters are *weak* comes from the
+eigen-directions of the information scaled by the test steps (``weak_parameters``): a combination of typical errors
+is weak when it changes the poses by less than ``min_effect_m`` (2 mm: a fraction of a LiDAR's range noise, a pixel
+at 10 m for a 320-pixel camera) or by less than a tenth of what its largest member does alone (its uncertainty is
+inflated at least tenfold, the "10x" of the uncertainty targets); every parameter with a share above ``SHARE`` in
+such a combination is weak. The reason names the drive's excitation and the partners.
+
+Pure numpy/torch/roma: nothing here imports nerfstudio.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal
+
+import numpy as np
+import roma
+import torch
+from jaxtyping import Float
+
+from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
+from moisst_ns.stages.observability import MIN_EFFECT, PARAMETERS, TEST_STEPS, marginal_information
+
+FD_STEPS = (1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4)
+"""Central finite-difference steps per parameter: metres, radians, seconds."""
+
+
+@dataclass
+class DriveObservabilityConfig:
+    """Settings of the drive observability analysis."""
+
+    scene_depth_m: float = 10.0
+    """Distance (m) at which an orientation change is measured as a displacement (a camera sees its rotation
+    through points at scene depth; 1 deg there is 17 cm)."""
+    max_lag_s: float = 2.0
+    """``relative`` model: frame pairs up to this far apart (a scan-to-map window), seconds."""
+    min_effect_m: float = MIN_EFFECT
+    """A parameter is weak when its test step changes the residuals by less than this RMS, metres."""
+    min_separability: float = 0.1
+    """A parameter is weak when re-fitting the others leaves less than this fraction of its own effect."""
+
+
+@dataclass
+class DriveDof:
+    """How well the drive constrains one parameter of one sensor."""
+
+    name: str
+    """One of ``PARAMETERS``."""
+    effect_m: float
+    """RMS residual change (metres) of the parameter's test step, the other 6 re-fitted."""
+    separability: float
+    """``sqrt(marginal / own information)`` in [0, 1]: 1 = independent of the others, 0 = fully absorbed."""
+    partners: List[str]
+    """The parameters that absorb it most (largest share of the re-fit), strongest first."""
+    weak: bool
+    reason: str
+    """One line, empty when not weak."""
+
+
+@dataclass
+class DriveObservability:
+    """Observability of one sensor's parameters from the drive."""
+
+    sensor: str
+    model: str
+    """``absolute`` or ``relative``."""
+    dofs: List[DriveDof] = field(default_factory=list)
+
+    @property
+    def weak(self) -> List[str]:
+        return [d.name for d in self.dofs if d.weak]
+
+
+def pose_residuals(
+    traj: ReferenceTrajectory, times: Float[np.ndarray, "num"], extrinsic: Float[np.ndarray, "4 4"],
+    params: Float[np.ndarray, "7"], model: Literal["absolute", "relative"], pairs: np.ndarray, scene_depth_m: float,
+) -> Float[np.ndarray, "num_residuals"]:
+    """How the sensor's poses change when its calibration moves by ``params`` from ``extrinsic`` / ``times``.
+
+    Args:
+        traj: the reference trajectory.
+        times: the frames' reference-clock times with the prior offset (stamp + delta - t0), seconds.
+        extrinsic: prior ``T_ref_sensor``.
+        params: change of (x, y, z) in the reference frame (m), rotation vector about the sensor's axes (rad) and
+            time offset (s), in ``PARAMETERS`` order.
+        model: ``absolute`` (world poses) or ``relative`` (poses of frame ``pairs[:, 1]`` seen from ``pairs[:, 0]``).
+        pairs: (P, 2) frame index pairs (``relative`` only).
+        scene_depth_m: metres per radian of orientation change.
+
+    Returns:
+        Flattened (N, 6) residuals, metres: translation change in the sensor's frame, ``scene_depth_m`` times the
+        rotation vector of the orientation change.
+    """
+    t = torch.as_tensor(times, dtype=torch.float64)
+    prior = torch.as_tensor(extrinsic, dtype=torch.float64)
+    p = torch.as_tensor(params, dtype=torch.float64)
+    moved = calibrated_extrinsic(prior, p[3:6], p[0:3])
+    before, after = traj(t) @ prior, traj(t + p[6]) @ moved
+    if model == "relative":
+        idx = torch.as_tensor(pairs, dtype=torch.long)
+        before = torch.linalg.inv(before[idx[:, 0]]) @ before[idx[:, 1]]
+        after = torch.linalg.inv(after[idx[:, 0]]) @ after[idx[:, 1]]
+    change = torch.linalg.inv(before) @ after
+    rot = roma.rotmat_to_rotvec(change[:, :3, :3]) * scene_depth_m
+    return torch.cat([change[:, :3, 3], rot], dim=1).numpy().reshape(-1)
+
+
+def frame_pairs(times: Float[np.ndarray, "num"], max_lag_s: float) -> np.ndarray:
+    """Index pairs ``(j, k)``, ``j < k``, of frames at most ``max_lag_s`` apart (at least consecutive frames).
+
+    Args:
+        times: frame times, seconds.
+        max_lag_s: largest time difference, seconds.
+
+    Returns:
+        (P, 2) int array.
+    """
+    order = np.argsort(times)
+    out = []
+    for a in range(len(order)):
+        for b in range(a + 1, len(order)):
+            if b > a + 1 and abs(times[order[b]] - times[order[a]]) > max_lag_s:
+                break
+            out.append((order[a], order[b]))
+    return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+
+def pose_jacobian(traj: ReferenceTrajectory, times, extrinsic, model: str, pairs, scene_depth_m: float) -> Float[np.ndarray, "num_residuals 7"]:
+    """Central finite-difference Jacobian of ``pose_residuals`` at zero change (metres per m / rad / s)."""
+    cols = []
+    for i, h in enumerate(FD_STEPS):
+        step = np.zeros(7)
+        step[i] = h
+        plus = pose_residuals(traj, times, extrinsic, step, model, pairs, scene_depth_m)
+        minus = pose_residuals(traj, times, extrinsic, -step, model, pairs, scene_depth_m)
+        cols.append((plus - minus) / (2 * h))
+    return np.stack(cols, axis=1)
+
+
+def _partners(information: Float[np.ndarray, "7 7"], i: int) -> List[str]:
+    """The parameters whose re-fit absorbs most of parameter ``i``: largest ``|H_ij| / sqrt(H_ii H_jj)``."""
+    diag = np.sqrt(np.maximum(np.diag(information), 1e-30))
+    corr = np.abs(information[i]) / (diag[i] * diag)
+    corr[i] = 0.0
+    return [PARAMETERS[j] for j in np.argsort(-corr) if corr[j] > 0.5][:2]
+
+
+SHARE = 0.3
+"""A parameter takes part in a weak combination when its share of the (test-step scaled, unit) direction exceeds this."""
+
+
+def weak_parameters(information: Float[np.ndarray, "7 7"], config: DriveObservabilityConfig) -> set:
+    """Indices of the parameters that take a material part (``SHARE``) in a weak combination.
+
+    The information is scaled by ``TEST_STEPS`` (``D H D``: a unit vector is a combination of typical prior errors);
+    an eigen-direction is weak when a test-sized error along it changes the poses by less than ``min_effect_m`` RMS
+    or by less than ``min_separability`` times the effect of its largest member alone. Marginal information alone
+    would also flag a parameter that plays a tiny part in a degenerate combination (a camera's vertical lever arm
+    when the velocity has a small vertical component in its frame).
+
+    Args:
+        information: per-pose ``J^T J`` in ``PARAMETERS`` order (metres^2 per unit^2).
+        config: thresholds.
+
+    Returns:
+        Set of parameter indices.
+    """
+    scale = np.asarray(TEST_STEPS)
+    scaled = information * np.outer(scale, scale)
+    values, vectors = np.linalg.eigh(scaled)
+    own = np.sqrt(np.maximum(np.diag(scaled), 0.0))
+    out = set()
+    for value, vector in zip(values, vectors.T):
+        effect = np.sqrt(max(value, 0.0))
+        members = np.nonzero(np.abs(vector) > SHARE)[0]
+        if len(members) and (effect < config.min_effect_m or effect < config.min_separability * own[members].max()):
+            out.update(int(i) for i in members)
+    out.update(int(i) for i in np.nonzero(own < config.min_effect_m)[0])
+    return out
+
+
+def excitation(traj: ReferenceTrajectory, times: Float[np.ndarray, "num"]) -> Dict[str, float]:
+    """What the drive does over ``times``: distance (m), speed range (m/s), heading/turn range and rotation about
+    the reference axes (peak to peak, degrees), and the spread of the body angular rate (deg/s).
+
+    Args:
+        traj: the reference trajectory.
+        times: reference-clock times (since ``t0``), seconds.
+
+    Returns:
+        ``{"distance_m", "speed_min", "speed_max", "turn_deg", "rotation_deg" (3,), "rate_spread_dps"}``.
+    """
+    t = torch.as_tensor(np.sort(times), dtype=torch.float64)
+    h = 1e-3
+    poses = traj(t)
+    ahead, back = traj(t + h), traj(t - h)
+    speed = torch.linalg.norm(ahead[:, :3, 3] - back[:, :3, 3], dim=1) / (2 * h)
+    rate = roma.rotmat_to_rotvec(back[:, :3, :3].transpose(-1, -2) @ ahead[:, :3, :3]) / (2 * h)
+    rel = roma.rotmat_to_rotvec(poses[:1, :3, :3].transpose(-1, -2) @ poses[:, :3, :3]).numpy()
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3].numpy(), axis=0), axis=1)
+    return {"distance_m": float(steps.sum()), "speed_min": float(speed.min()), "speed_max": float(speed.max()),
+            "turn_deg": float(np.rad2deg(np.linalg.norm(rel, axis=1).max())),
+            "rotation_deg": np.rad2deg(np.ptp(rel, axis=0)),
+            "rate_spread_dps": float(np.rad2deg(np.linalg.norm(rate.numpy() - rate.numpy().mean(0), axis=1).max()))}
+
+
+def _reason(name: str, model: str, partners: List[str], exc: Dict[str, float], effect: float) -> str:
+    """One line: why ``name`` is weak on this drive."""
+    with_ = f"; it trades against {' and '.join(partners)}" if partners else ""
+    if name == "time_offset":
+        return (f"speed {exc['speed_min']:.2f}-{exc['speed_max']:.2f} m/s and the turn rate varies by only "
+                f"{exc['rate_spread_dps']:.1f} deg/s over the drive: under a constant twist a time offset is a fixed "
+                f"extrinsic change (a straight constant-speed drive cannot separate it from the along-track lever arm){with_}")
+    if name in ("x", "y", "z") and model == "relative":
+        others = float(np.hypot(*np.delete(exc["rotation_deg"], "xyz".index(name))))
+        return (f"the reference frame turns only {others:.1f} deg about its axes other than {name}; seen through the "
+                f"sensor's own motion a lever arm shows only through such turns (a flat drive leaves the vertical weak){with_}")
+    if name in ("x", "y", "z"):
+        return (f"moving it by 10 cm changes the poses by {1000 * effect:.1f} mm RMS once the others re-fit; the speed "
+                f"({exc['speed_min']:.2f}-{exc['speed_max']:.2f} m/s) and turns ({exc['turn_deg']:.1f} deg) do not tell "
+                f"it from a time offset{with_}")
+    return (f"the drive covers {exc['distance_m']:.1f} m and turns {exc['turn_deg']:.1f} deg; seen through the sensor's "
+            f"own motion a rotation shows only in proportion to the motion across its axis{with_}")
+
+
+def analyse_drive(
+    traj: ReferenceTrajectory, times: Float[np.ndarray, "num"], extrinsic: Float[np.ndarray, "4 4"], sensor: str,
+    model: Literal["absolute", "relative"], config: DriveObservabilityConfig = DriveObservabilityConfig(),
+) -> DriveObservability:
+    """Observability of one sensor's 7 parameters from the drive alone.
+
+    Args:
+        traj: the reference trajectory.
+        times: the sensor's frames, reference-clock times (own stamp + prior delta - ``t0``), seconds; at least 2.
+        extrinsic: prior ``T_ref_sensor``.
+        sensor: its name (for the report).
+        model: ``absolute`` or ``relative`` (module docstring).
+        config: thresholds.
+
+    Returns:
+        One ``DriveDof`` per parameter, in ``PARAMETERS`` order.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    pairs = frame_pairs(times, config.max_lag_s) if model == "relative" else np.zeros((0, 2), dtype=np.int64)
+    jac = pose_jacobian(traj, times, extrinsic, model, pairs, config.scene_depth_m)
+    information = jac.T @ jac / max(len(jac) // 6, 1)  # per pose: RMS over poses
+    marginal = marginal_information(information)
+    exc = excitation(traj, times)
+    out = DriveObservability(sensor, model)
+    weak_set = weak_parameters(information, config)
+    for i, (name, step) in enumerate(zip(PARAMETERS, TEST_STEPS)):
+        own = float(information[i, i])
+        effect = float(np.sqrt(marginal[i]) * step)
+        separability = float(np.sqrt(marginal[i] / own)) if own > 0 else 0.0
+        partners = _partners(information, i)
+        weak = i in weak_set
+        out.dofs.append(DriveDof(name, effect, separability, partners, weak,
+                                 _reason(name, model, partners, exc, effect) if weak else ""))
+    return out
+
+
+def analyse_rig_drive(rig, lidar_first: bool = True, config: DriveObservabilityConfig = DriveObservabilityConfig()) -> List[DriveObservability]:
+    """``analyse_drive`` for every non-reference sensor of a loaded rig, at its priors.
+
+    Args:
+        rig: a ``moisst_ns.rig.format.Rig``.
+        lidar_first: LiDARs are calibrated by the LiDAR-first stage (``relative`` model); else like cameras.
+        config: thresholds.
+
+    Returns:
+        One result per non-reference sensor, in rig order.
+    """
+    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    out = []
+    for name, spec in rig.sensors.items():
+        if name == rig.reference_sensor:
+            continue
+        stamps = np.array([f.timestamp for f in rig.frames_of(name)], dtype=np.float64)
+        times = stamps + spec.time_offset - traj.t0
+        if len(times) < 2:
+            times = np.concatenate([times, times + 0.1])
+        model = "relative" if (spec.type == "lidar" and lidar_first) else "absolute"
+        out.append(analyse_drive(traj, times, spec.T_ref_sensor, name, model, config))
+    return out
+
+
+def drive_table(results: List[DriveObservability]) -> List[str]:
+    """The printed table (effect of a test step in mm, separability) and one WARNING line per weak parameter.
+
+    Args:
+        results: ``analyse_rig_drive`` output.
+
+    Returns:
+        Lines to print.
+    """
+    head = f"{'sensor':<12} {'model':<9} " + " ".join(f"{p:>14}" for p in PARAMETERS)
+    lines = ["observability from the drive (RMS pose effect of 10 cm / 1 deg / 10 ms, mm; separability; * = weak):", head]
+    for r in results:
+        cells = [f"{1000 * d.effect_m:7.1f} {d.separability:4.2f}{'*' if d.weak else ' '}" for d in r.dofs]
+        lines.append(f"{r.sensor:<12} {r.model:<9} " + " ".join(f"{c:>14}" for c in cells))
+    for r in results:
+        for d in r.dofs:
+            if d.weak:
+                lines.append(f"WARNING: {r.sensor}: {d.name} weakly observable from this drive: {d.reason}")
+    return lines
+
+
+def drive_json(results: List[DriveObservability]) -> Dict[str, dict]:
+    """JSON-ready ``{sensor: {"model", "weak", "dofs": [...]}}``."""
+    from dataclasses import asdict
+
+    return {r.sensor: {"model": r.model, "weak": r.weak, "dofs": [asdict(d) for d in r.dofs]} for r in results}

@@ -1,0 +1,243 @@
+"""Per-sensor standard deviations of a trained calibration and its held-back loss against the prior.
+
+For every camera the NeRF calibrated, fresh pixels of its frames (drawn with their own seed, not a training batch)
+are rendered at the estimate; each pixel's colour residual (rendered minus observed, 3 channels) is differentiated
+with respect to the sensor's 7 parameters by central finite differences (re-posing the rays, ``FD_STEPS``), and
+``stages.uncertainty_math.least_squares_sigma`` turns the Jacobian and residuals into standard deviations, with the
+frames as clusters (pixels of one frame share the scene's errors). The same pixels rendered with that sensor's
+correction set to zero give the loss at the prior: a calibration that does not beat its prior there is not trusted.
+
+Cost: ``2 x 7 + 2`` renders of ``rays_per_sensor`` rays per camera (a few seconds each on a CPU for 1024 rays).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Dict, List, Optional
+
+import numpy as np
+import torch
+
+from moisst_ns.stages.uncertainty_math import least_squares_sigma
+
+FD_STEPS = (0.002, 0.002, 0.002, np.deg2rad(0.02), np.deg2rad(0.02), np.deg2rad(0.02), 0.0005)
+"""Finite-difference half-steps: 2 mm, 0.02 deg, 0.5 ms (a tenth of a pixel's footprint at 10 m for a 320-pixel
+camera: small against the calibration's errors, large against float32 rendering noise)."""
+
+
+@dataclass
+class UncertaintyConfig:
+    """Settings of the held-back uncertainty pass."""
+
+    rays_per_sensor: int = 1024
+    """Pixels per camera, spread evenly over its frames."""
+    chunk: int = 4096
+    """Rays rendered per forward pass."""
+    seed: int = 0
+    """Seed of the pixel draw (independent of training's)."""
+
+
+@dataclass
+class SensorUncertainty:
+    """What the held-back pixels say about one sensor."""
+
+    sigma: List[float]
+    """7 standard deviations in ``PARAMETERS`` order: metres, radians, seconds."""
+    loss_estimate: float
+    """Mean squared colour residual at the estimate."""
+    loss_prior: float
+    """The same with this sensor's correction at zero (the prior the NeRF started from)."""
+    rays: int
+    frames: int
+    wall_s: float
+
+
+def _param_views(rig, index: int):
+    """The 7 scalar views (translation x, y, z; rotvec 1-3; time offset) of sensor ``index``'s corrections."""
+    return [(rig.translation, (index, 0)), (rig.translation, (index, 1)), (rig.translation, (index, 2)),
+            (rig.rotvec, (index, 0)), (rig.rotvec, (index, 1)), (rig.rotvec, (index, 2)), (rig.time_offset, (index,))]
+
+
+def _draw_pixels(datamanager, frames: List[int], count: int, generator: torch.Generator):
+    """``count`` random pixels over ``frames`` (training-frame indices): (N, 3) ``[frame, y, x]`` and (N, 3) RGB."""
+    per = max(count // max(len(frames), 1), 1)
+    indices, colours = [], []
+    for frame in frames:
+        image = datamanager.train_dataset.get_image_float32(frame)[..., :3]
+        h, w = image.shape[:2]
+        y = torch.randint(h, (per,), generator=generator)
+        x = torch.randint(w, (per,), generator=generator)
+        indices.append(torch.stack([torch.full_like(y, frame), y, x], dim=1))
+        colours.append(image[y, x])
+    return torch.cat(indices), torch.cat(colours)
+
+
+def _ray_generator(datamanager):
+    """The training ray generator (built when the pipeline was loaded for inference, which sets up none)."""
+    generator = getattr(datamanager, "train_ray_generator", None)
+    if generator is None:
+        from nerfstudio.model_components.ray_generators import RayGenerator
+
+        generator = RayGenerator(datamanager.train_dataset.cameras.to(datamanager.device))
+        datamanager.train_ray_generator = generator
+    return generator
+
+
+@torch.no_grad()
+def _render(model, datamanager, indices: torch.Tensor, chunk: int) -> torch.Tensor:
+    """Colours of the pixels ``indices`` at the current calibration (eval mode: the caller re-poses the rays)."""
+    out = []
+    generator = _ray_generator(datamanager)
+    for start in range(0, len(indices), chunk):
+        bundle = generator(indices[start:start + chunk].to(model.device))
+        model.camera_optimizer.apply_to_raybundle(bundle)
+        out.append(model(bundle)["rgb"].float().cpu())
+    return torch.cat(out)
+
+
+@torch.no_grad()
+def sensor_uncertainty(pipeline, sensor: int, config: UncertaintyConfig) -> Optional[SensorUncertainty]:
+    """Standard deviations and held-back losses of camera ``sensor`` (None when it has no training frame).
+
+    Args:
+        pipeline: the trained pipeline (its model is put in eval mode and back).
+        sensor: sensor index in the rig.
+        config: pixel count, chunk, seed.
+
+    Returns:
+        ``SensorUncertainty`` or None.
+    """
+    start = time.time()
+    model, datamanager = pipeline.model, pipeline.datamanager
+    rig = model.camera_optimizer.rig
+    frames = torch.nonzero(model.camera_optimizer.frame_sensor.cpu() == sensor)[:, 0].tolist()
+    if not frames:
+        return None
+    generator = torch.Generator().manual_seed(config.seed * 1000 + sensor)
+    indices, target = _draw_pixels(datamanager, frames, config.rays_per_sensor, generator)
+    was_training = model.training
+    model.eval()
+    try:
+        base = _render(model, datamanager, indices, config.chunk)
+        columns = []
+        for (param, at), h in zip(_param_views(rig, sensor), FD_STEPS):
+            value = float(param[at])
+            param[at] = value + h
+            plus = _render(model, datamanager, indices, config.chunk)
+            param[at] = value - h
+            minus = _render(model, datamanager, indices, config.chunk)
+            param[at] = value
+            columns.append(((plus - minus) / (2 * h)).reshape(-1).numpy())
+        saved = [(param, at, float(param[at])) for param, at in _param_views(rig, sensor)]
+        for param, at, _ in saved:
+            param[at] = 0.0
+        at_prior = _render(model, datamanager, indices, config.chunk)
+        for param, at, value in saved:
+            param[at] = value
+    finally:
+        model.train(was_training)
+    residuals = (base - target).reshape(-1).numpy().astype(np.float64)
+    clusters = np.repeat(indices[:, 0].numpy(), 3)
+    fit = least_squares_sigma(np.stack(columns, axis=1).astype(np.float64), residuals, clusters)
+    return SensorUncertainty(
+        sigma=[float(s) for s in fit.sigma], loss_estimate=float(np.mean(residuals**2)),
+        loss_prior=float(((at_prior - target) ** 2).mean()), rays=len(indices), frames=len(frames), wall_s=time.time() - start)
+
+
+def nerf_uncertainties(pipeline, config: UncertaintyConfig) -> Dict[str, SensorUncertainty]:
+    """``sensor_uncertainty`` of every trainable camera of the run's rig (frozen and reference sensors skipped).
+
+    Args:
+        pipeline: the trained pipeline.
+        config: settings.
+
+    Returns:
+        ``{sensor name: SensorUncertainty}``.
+    """
+    rig = pipeline.model.camera_optimizer.rig
+    out = {}
+    for i, name in enumerate(rig.data.sensor_names):
+        if not bool(rig.trainable[i]) or rig.data.sensor_types[i] != "camera":
+            continue
+        found = sensor_uncertainty(pipeline, i, config)
+        if found is not None:
+            out[name] = found
+    return out
+
+
+SIGMA_UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
+"""Display scale and unit of each of the 7 sigmas (stored in m, rad, s)."""
+
+
+def trust_entry(sigma: Optional[List[float]], verdict: str, weak: List[str], reason: str):
+    """A ``SensorTrust`` from 7 sigmas in m / rad / s (None: not measured)."""
+    from moisst_ns.rig.trust import SensorTrust
+
+    if sigma is None:
+        return SensorTrust(verdict=verdict, weak=weak, reason=reason)
+    return SensorTrust([float(s) for s in sigma[:3]], [float(np.rad2deg(s)) for s in sigma[3:6]], float(sigma[6]), verdict, weak, reason)
+
+
+def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: Dict[str, str], hit: Dict[str, list],
+               config: Optional[UncertaintyConfig]):
+    """Sigma, weak parameters and verdict of every non-reference sensor; the prior replaces any estimate that the
+    held-back loss says is no better than it.
+
+    Args:
+        pipeline: the trained pipeline.
+        estimate: the NeRF's estimate (``Calibration``).
+        stage: the LiDAR-first stage's summary (its sensors' formal sigma and weak parameters), or None.
+        drive: ``stages.drive_observability.analyse_rig_drive`` results.
+        moving: sensors still moving (name -> spread).
+        hit: sensors that ran into a bound (name -> bounds).
+        config: settings of the held-back pass; None skips it (no sigma for the NeRF's sensors).
+
+    Returns:
+        ``(calibration with trust fields, JSON-ready per-sensor record, lines to print)``.
+    """
+    from moisst_ns.rig.format import Calibration
+    from moisst_ns.rig.trust import PARAMETERS, UNCONSTRAINED, decide_verdict
+    from moisst_ns.stages.observability import TEST_STEPS
+
+    start = time.time()
+    from moisst_ns.runs.folder import prior_calibration
+
+    rig = pipeline.model.camera_optimizer.rig
+    dataset_prior = prior_calibration(rig.data)
+    measured = nerf_uncertainties(pipeline, config) if config is not None else {}
+    final = Calibration(estimate.reference_sensor, dict(estimate.T_ref_sensor), dict(estimate.time_offset), {})
+    drive_weak = {r.sensor: r.weak for r in drive}
+    record, lines = {}, []
+    for i, name in enumerate(rig.data.sensor_names):
+        if i == rig.data.reference_index:
+            continue
+        sigma, loss_est, loss_prior, source = None, None, None, "none"
+        if name in measured:
+            m = measured[name]
+            sigma, loss_est, loss_prior, source = m.sigma, m.loss_estimate, m.loss_prior, "held-back pixels"
+        elif stage is not None and name in stage["sensors"]:
+            sigma, source = [d["sigma"] for d in stage["sensors"][name]["observability"]], "LiDAR-first formal"
+        weak = list(drive_weak.get(name, []))
+        if stage is not None and name in stage["sensors"]:
+            weak += stage["sensors"][name]["weak"]
+        if sigma is not None:
+            weak += [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step]
+        weak = [p for p in PARAMETERS if p in weak]
+        free = [] if sigma is None else [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= UNCONSTRAINED * step]
+        verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free)
+        if keep_prior:  # the dataset's prior (rig.json), also for a LiDAR the NeRF started from the LiDAR-first estimate
+            final.T_ref_sensor[name] = np.array(dataset_prior.T_ref_sensor[name], dtype=np.float64)
+            final.time_offset[name] = float(dataset_prior.time_offset[name])
+            lines.append(f"WARNING: {name}: {reason}; calibration.json keeps it")
+        final.trust[name] = trust_entry(sigma, verdict, weak, reason)
+        record[name] = {"sigma": None if sigma is None else [float(v) if np.isfinite(v) else None for v in sigma], "sigma_source": source, "loss_estimate": loss_est, "loss_prior": loss_prior,
+                        "kept_prior": keep_prior, **final.trust[name].to_json()}
+    head = f"{'sensor':<12}" + "".join(f"{'s_' + p:>14}" for p in PARAMETERS) + "  verdict"
+    table = ["uncertainty (1 sigma: cm, deg, ms) and verdict per sensor:", head]
+    for name, r in record.items():
+        cells = ["-" if r["sigma"] is None else "inf" if r["sigma"][k] is None else f"{r['sigma'][k] * SIGMA_UNITS[k][0]:.3g}" for k in range(7)]
+        table.append(f"{name:<12}" + "".join(f"{c:>14}" for c in cells) + f"  {r['verdict']}: {r['reason']}")
+    wall = time.time() - start
+    table.append(f"(sigma from {', '.join(sorted({r['sigma_source'] for r in record.values()}))}; {wall:.1f} s)")
+    return final, {"sensors": record, "wall_s": wall}, table + lines
