@@ -52,7 +52,8 @@ from moisst_ns.datasets.kitti360_io import (
     read_perspective,
     read_timestamps,
 )
-from moisst_ns.rig.format import Calibration, clear_generated_dataset, rig_json, write_tum
+from moisst_ns.datasets.output import clear_generated_dataset
+from moisst_ns.rig.format import Calibration, rig_json, write_tum
 
 CAMERAS = ("image_00", "image_01", "image_02", "image_03")
 FISHEYE = ("image_02", "image_03")

@@ -389,7 +389,7 @@ def _prepare_out(config: SynthConfig) -> Path:
     if out.is_dir() and any(out.iterdir()):
         if not config.overwrite:
             raise SynthError(f"{out} exists and is not empty; pass --overwrite to replace its dataset")
-        from moisst_ns.rig.format import clear_generated_dataset
+        from moisst_ns.datasets.output import clear_generated_dataset
 
         clear_generated_dataset(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -370,19 +369,6 @@ def rig_json(reference_sensor: str, trajectory: str, sensors: Dict[str, tuple], 
     if metadata is not None:
         out["metadata"] = metadata
     return out
-
-
-def clear_generated_dataset(out: Path) -> None:
-    """Remove what a dataset generator (``moisst-synth``, ``moisst-kitti360-to-rig``) writes into ``out``.
-
-    Args:
-        out: A folder the generator owns (``--overwrite`` was given); other files in it are left alone.
-    """
-    for name in ("rig.json", "reference_poses.txt", "ground_truth.json"):
-        (Path(out) / name).unlink(missing_ok=True)
-    for name in ("images", "lidar"):
-        if (Path(out) / name).is_dir():
-            shutil.rmtree(Path(out) / name)
 
 
 @dataclass
