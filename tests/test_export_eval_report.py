@@ -268,7 +268,7 @@ def test_moisst_eval_errors_are_one_line(run, tmp_path):
     (no_errors / "calibration_history.csv").write_text("\n".join([lines[0]] + blanked) + "\n")
     cases = [
         ([tmp_path / "missing.json", truth], "missing.json: (file): file not found"),
-        ([bad_json, truth], "bad.json: line 2: invalid JSON"),
+        ([bad_json, truth], "bad.json: line 2, column 3: invalid JSON: Expecting property name enclosed in double quotes"),
         ([truth], "expected CALIBRATION.json GROUND_TRUTH.json"),
         (["--history", tmp_path / "nowhere"], "calibration_history.csv not found"),
         (["--history", no_errors, "--columns", "errors"], "no error columns"),

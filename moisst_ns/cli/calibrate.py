@@ -13,6 +13,7 @@ import tyro
 from moisst_ns.cli.common import fail
 from moisst_ns.pipeline import CalibrateConfig, CalibrationError
 from moisst_ns.pipeline import run_calibration as _run_calibration
+from moisst_ns.quiet import quiet_third_party
 from moisst_ns.rig.format import RigFormatError
 
 PROG = "moisst-calibrate"
@@ -27,7 +28,9 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
 
 
 def main() -> None:
-    run_calibration(tyro.cli(CalibrateConfig, prog=PROG))
+    cfg = tyro.cli(CalibrateConfig, prog=PROG)
+    quiet_third_party(cfg.verbose)
+    run_calibration(cfg)
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ import tyro
 
 from moisst_ns.cli.common import fail
 from moisst_ns.pipeline import LIDAR_DEPTH_PER_M2, lidar_scene_settings, seed_everything
+from moisst_ns.quiet import quiet_third_party
 from moisst_ns.runs import RunError
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
@@ -54,6 +55,8 @@ class FloorConfig:
     depth_loss_per_m2: Optional[float] = None
     """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
     method's normalised-depth loss (the paper's) when omitted."""
+    verbose: bool = False
+    """Show every third-party warning (known-harmless ones are hidden by default: ``moisst_ns.quiet``)."""
     lidar_scene: bool = False
     """Train the scene as ``moisst-calibrate --lidar-scene`` does (metric LiDAR depth from step 0 over the whole
     scan; ``--depth-loss-per-m2`` or the pipeline's default weight of 5 per m^2)."""
@@ -183,7 +186,9 @@ def run_floor(cfg: FloorConfig) -> Dict[str, Dict[str, float]]:
 
 
 def main() -> None:
-    run_floor(tyro.cli(FloorConfig))
+    cfg = tyro.cli(FloorConfig)
+    quiet_third_party(cfg.verbose)
+    run_floor(cfg)
 
 
 if __name__ == "__main__":
