@@ -61,6 +61,6 @@ if .venv/bin/python -c "import moisst_ns.torchvision_cpu as m, sys; sys.exit(not
     echo "import sys; exec('try:\n import moisst_ns.torchvision_cpu as m; m.install()\nexcept ImportError: pass')" > "$SITE/moisst_torchvision_cpu.pth"
     echo "[install] CPU torch beside PyPI's CUDA torchvision: $SITE/moisst_torchvision_cpu.pth (moisst_ns/torchvision_cpu.py)"
 fi
-.venv/bin/python -c "import torchvision, moisst_ns.method_configs, open3d" >/dev/null
+.venv/bin/python -W ignore::FutureWarning -c "import torchvision, moisst_ns.method_configs, open3d" >/dev/null
 echo "$WANT" > "$STAMP"
 echo "[install] done: torch $(.venv/bin/python -c 'import torch; print(torch.__version__)'), $(du -sh .venv | cut -f1) in .venv"

@@ -101,3 +101,24 @@ def test_tiny_calibration_prints_no_third_party_warning(tmp_path):
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert set(summary["verdicts"]) == {"cam_front_right", "cam_left", "lidar"}
     assert result.stdout.rstrip().splitlines()[-1].startswith(("Trust:", "Do not trust:"))
+
+
+def test_torchvision_and_nerfstudio_import_in_this_venv():
+    """Whatever torch/torchvision the install chose (CPU torch beside PyPI's CUDA torchvision included), the
+    nerfstudio code paths we use import, and torchvision's pure-torch helpers that nerfstudio calls run."""
+    code = ("import torch, torchvision.utils, torchvision.transforms.functional as TF, nerfstudio.pipelines.base_pipeline\n"
+            "assert TF.resize(torch.rand(3, 8, 8), [4, 4]).shape == (3, 4, 4)\n"
+            "assert torchvision.utils.make_grid(torch.rand(2, 3, 4, 4)).shape[0] == 3\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-1500:]
+
+
+def test_torchvision_shim_only_for_a_cpu_torch_beside_a_cuda_torchvision(monkeypatch):
+    from moisst_ns import torchvision_cpu
+
+    versions = {}
+    monkeypatch.setattr(torchvision_cpu.metadata, "version", lambda name: versions[name])
+    for torch_v, tv_v, expected in (("2.13.0+cpu", "0.28.0", True), ("2.13.0+cpu", "0.28.0+cpu", False),
+                                    ("2.14.1", "0.29.1", False)):
+        versions.update(torch=torch_v, torchvision=tv_v)
+        assert torchvision_cpu.needed() is expected, (torch_v, tv_v)
