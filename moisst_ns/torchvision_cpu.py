@@ -17,7 +17,6 @@ until something imports torchvision), so every process of the venv (our commands
 from __future__ import annotations
 
 import sys
-from importlib import metadata
 
 SCHEMAS = (
     "nms(Tensor dets, Tensor scores, float iou_threshold) -> Tensor",
@@ -28,6 +27,8 @@ _LIBRARY = []  # keeps the torch.library.Library alive
 
 def needed() -> bool:
     """A CPU build of torch beside a CUDA build of torchvision (from the installed versions, without importing)."""
+    from importlib import metadata  # here, not at module level: this module is imported at every interpreter start
+
     try:
         torch_version, tv_version = metadata.version("torch"), metadata.version("torchvision")
     except metadata.PackageNotFoundError:

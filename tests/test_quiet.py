@@ -117,7 +117,9 @@ def test_torchvision_shim_only_for_a_cpu_torch_beside_a_cuda_torchvision(monkeyp
     from moisst_ns import torchvision_cpu
 
     versions = {}
-    monkeypatch.setattr(torchvision_cpu.metadata, "version", lambda name: versions[name])
+    import importlib.metadata
+
+    monkeypatch.setattr(importlib.metadata, "version", lambda name: versions[name])
     for torch_v, tv_v, expected in (("2.13.0+cpu", "0.28.0", True), ("2.13.0+cpu", "0.28.0+cpu", False),
                                     ("2.14.1", "0.29.1", False)):
         versions.update(torch=torch_v, torchvision=tv_v)
