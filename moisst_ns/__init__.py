@@ -2,10 +2,10 @@
 
 ``moisst_ns.rig`` is the framework-free rig math (poses, interpolation, parameters, dataset format);
 the rest is thin nerfstudio glue.
+
+Importing the package imports neither torch nor nerfstudio (``moisst-* --help`` stays instant); the checkpoint
+shim of ``moisst_ns.compat`` is applied by ``moisst_ns.model``, which every run, checkpoint load and
+``ns-*`` tool of our methods imports.
 """
-
-from moisst_ns.compat import allow_numpy_in_checkpoints
-
-allow_numpy_in_checkpoints()
 
 __version__ = "0.1.0"

@@ -64,6 +64,8 @@ class FloorConfig:
     """Weight of the line-of-sight loss on LiDAR rays (the model's default when omitted; 0 switches it off)."""
     lidar_far_margin: Optional[float] = None
     """LiDAR-guided sampling as ``moisst-calibrate --lidar-far-margin`` (the model's default when omitted)."""
+    verbose: bool = False
+    """Show every third-party warning (known-harmless ones are hidden by default: ``moisst_ns.quiet``)."""
     depth_check_rays: int = 8192
     """Camera rays whose rendered depth is compared with the true surface (0: skip the depth check)."""
 

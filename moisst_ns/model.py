@@ -28,13 +28,13 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from moisst_ns.runs.history import append_history
 from moisst_ns.viewer_panel import CalibrationPanel
-from moisst_ns.compat import _NoLPIPS
+from moisst_ns.compat import _NoLPIPS, allow_numpy_in_checkpoints
 from moisst_ns.data.layout import RayLayout
 from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss, line_of_sight_loss
 from moisst_ns.schedules import rescale_schedules
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
 
-
+allow_numpy_in_checkpoints()  # nerfstudio 1.1.5 checkpoints under torch >= 2.6 (moisst_ns.compat)
 
 
 def guided_far_planes(

@@ -19,6 +19,7 @@ import tyro
 from moisst_ns.runs import RunError
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import HISTORY_FILE, append_history, format_error_table, stage_history_rows, still_moving
+from moisst_ns.runs.verdict import sensor_verdicts, trust_lines
 
 
 @dataclass
@@ -88,6 +89,9 @@ class CalibrateConfig:
     """After training, measure every camera's 7 standard deviations and its held-back loss against the prior
     (``moisst_ns.uncertainty``; a few seconds per camera): into calibration.json with a verdict per sensor.
     --no-uncertainty: verdicts from the history and the drive only, no sigma for the NeRF's cameras."""
+    verbose: bool = False
+    """Show every third-party warning and banner (by default the known-harmless ones are hidden:
+    ``moisst_ns.quiet``)."""
     lidar_first: bool = True
     """Calibrate every LiDAR from its own scans before the NeRF (``moisst-lidar-calibrate``, into OUT/lidar_first);
     the NeRF starts from that estimate, holds the LiDARs there and lets their depth shape the scene.
@@ -271,11 +275,20 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     if truth is not None:
         summary["errors_final"] = {k: v for k, v in calibration_report_errors(final, truth).items() if k != truth.reference_sensor}
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    verdicts = None
     if cfg.report:
         from moisst_ns.report import write_report
 
         report = write_report(config.get_base_dir() / "config.yml", out / "report", pipeline=trainer.pipeline)
         print(f"diagnostics: {report}")
+        verdicts = json.loads((report.parent / "report.json").read_text())["verdicts"]
+    if verdicts is None:  # --no-report: the same flags, without the depth check of the renders
+        names = [n for n in optimizer.rig.data.sensor_names if n != rig.reference_sensor]
+        lidars = [n for n in names if rig.sensors[n].type == "lidar"]
+        verdicts = sensor_verdicts(names, summary, json.loads((out / "calibration.json").read_text()), (), lidars, rig.reference_sensor)
+    summary["verdicts"] = verdicts
+    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    print("\n".join(trust_lines(verdicts)))
     return config.get_base_dir() / "config.yml"
 
 

@@ -8,7 +8,11 @@ Writes into ``DIR`` (default ``RUN/report``):
   its depth, and the calibrated LiDAR points drawn over it.
 * ``convergence/``: (c) per sensor, the errors (when logged) and the estimates against the step, from
   ``calibration_history.csv``.
-* ``report.md``: (d) links to all of them and a per-sensor table (the history's last row).
+* ``report.md``: (d) links to all of them and a per-sensor table (the history's last row), preceded by the verdict:
+  which sensors to trust, the errors before (priors) and after (with ground truth), each sensor's flags
+  (``moisst_ns.runs.verdict``: worse than its prior, still moving, depth mismatch, the optional ``verdict`` /
+  ``weak`` / ``reason`` / ``uncertainty`` of calibration.json).
+* ``report.json``: the verdicts and the renders' depth statistics, for scripts.
 
 Projection (``project_points``): a LiDAR frame stamped ``t_L`` with per-point times ``tau`` is moved to the world
 with the rig's pose model, ``world_T_L = T_r(t_L + tau + delta_L) @ ref_T_L``, then into the camera frame of a
@@ -25,6 +29,7 @@ the image when ``0 <= u < w`` and ``0 <= v < h``, and is drawn into pixel ``(flo
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
@@ -32,21 +37,6 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from moisst_ns.report_images import COLORMAP, depth_colors, depth_range, draw_points, pick_evenly, project_points, side_by_side
-
-
-
-# --- projection and drawing (pure numpy) ----------------------------------------------------------------------
-
-
-
-
-
-
-
-
-
-
-
 
 
 
@@ -261,7 +251,8 @@ def make_renders(rig, pipeline, out_dir: Path, render_width: int, min_range: flo
             cols, rows = np.floor(uv[mask, 0]).astype(int), np.floor(uv[mask, 1]).astype(int)
             residual = np.abs(depth_z[rows, cols] - z[mask])
             results.append({"camera": camera, "size": (int(cameras.width), int(cameras.height)), "files": files, "points": int(mask.sum()),
-                            "median_depth_residual_m": float(np.median(residual)) if residual.size else float("nan")})
+                            "median_depth_residual_m": float(np.median(residual)) if residual.size else float("nan"),
+                            "median_lidar_depth_m": float(np.median(z[mask])) if residual.size else float("nan")})
     finally:
         model.train(was_training)
     return results
@@ -392,7 +383,9 @@ def write_report(
     else:
         lines += [f"No history: {history_problem}", ""]
 
-    lines += trust_lines(config_path, calib.estimate())
+    lines += uncertainty_lines(config_path, calib.estimate())
+    verdicts = run_verdicts(config_path, rig, calib, renders)
+    lines += verdict_section(verdicts)
     lines += ["## (a) LiDAR points on camera images: prior vs calibrated", ""]
     if not has_lidar:
         lines += ["The rig has no LiDAR: no LiDAR projections (sections a and b are skipped).", ""]
@@ -419,10 +412,12 @@ def write_report(
         lines += ["No calibration_history.csv to plot.", ""]
     report = out_dir / "report.md"
     report.write_text("\n".join(lines))
+    renders_json = [{k: v for k, v in r.items() if k != "files"} for r in renders]
+    (out_dir / "report.json").write_text(json.dumps({"verdicts": verdicts, "renders": renders_json}, indent=1, default=str) + "\n")
     return report
 
 
-def trust_lines(config_path: Path, estimate) -> List[str]:
+def uncertainty_lines(config_path: Path, estimate) -> List[str]:
     """report.md's uncertainty section: sigma, verdict and reason per sensor from moisst-calibrate's calibration.json
     (``runs.folder.run_trust``); empty when the run has none."""
     from moisst_ns.runs.folder import run_trust, summary_markdown
@@ -435,3 +430,52 @@ def trust_lines(config_path: Path, estimate) -> List[str]:
     return table.splitlines() + ["Verdicts: `converged`, `weakly observable` (see weak), `not converged` (moisst-calibrate exits "
                                  "with status 3; docs/uncertainty.md).", ""]
 
+
+def run_verdicts(config_path: Path, rig, calib, renders: List[Dict[str, Any]]) -> Dict[str, Dict[str, Any]]:
+    """Per-sensor verdicts of a run (``runs.verdict``): errors before (the dataset's priors) and after (the
+    checkpoint's estimate) when the dataset has ground truth, plus what moisst-calibrate left next to the run
+    (``OUT/summary.json``, ``OUT/calibration.json``, when the run folder is ``OUT/<method>/run``)."""
+    from moisst_ns.rig.calibration import calibration_report_errors
+    from moisst_ns.rig.format import Calibration, load_calibration
+    from moisst_ns.runs.verdict import sensor_verdicts
+
+    out = config_path.parent.parent.parent
+    summary, calibration = {}, None
+    for name in ("summary.json", "calibration.json"):
+        try:
+            loaded = json.loads((out / name).read_text()) if (out / name).is_file() else None
+        except (OSError, ValueError):
+            loaded = None  # a damaged side file only loses its extra flags; the report still comes
+        if name == "summary.json" and isinstance(loaded, dict):
+            summary = loaded
+        elif isinstance(loaded, dict):
+            calibration = loaded
+    summary = dict(summary)
+    truth_file = rig.root / "ground_truth.json"
+    if truth_file.is_file():
+        truth = load_calibration(truth_file)
+        summary["errors_before"] = calibration_report_errors(Calibration.from_rig(rig), truth)
+        summary["errors_after"] = calibration_report_errors(calib.estimate(), truth)
+    sensors = [n for n in rig.sensors if n != rig.reference_sensor]
+    lidars = [n for n in sensors if rig.sensors[n].type == "lidar"]
+    return sensor_verdicts(sensors, summary, calibration, renders, lidars, rig.reference_sensor)
+
+
+def verdict_section(verdicts: Dict[str, Dict[str, Any]]) -> List[str]:
+    """report.md's verdict: errors before and after (with ground truth) and each sensor's flags and caveats."""
+    from moisst_ns.runs.verdict import trust_lines
+
+    lines = ["## Verdict", ""] + [f"**{line}**" for line in trust_lines(verdicts)] + [""]
+    if any("errors_after" in v for v in verdicts.values()):
+        lines += ["| sensor | before: cm / deg / ms | after: cm / deg / ms |", "|---|---|---|"]
+        for name, v in verdicts.items():
+            if "errors_after" in v:
+                b, a = v["errors_before"], v["errors_after"]
+                lines.append(f"| {name} | {b['translation_cm']:.2f} / {b['rotation_deg']:.3f} / {b['time_ms']:.2f} | "
+                             f"{a['translation_cm']:.2f} / {a['rotation_deg']:.3f} / {a['time_ms']:.2f} |")
+        lines += ["", "Before: the dataset's priors; after: this run's estimate; both against ground_truth.json.", ""]
+    for name, v in verdicts.items():
+        extra = [f"verdict: {v['verdict']}"] if "verdict" in v else []
+        extra += [f"uncertainty: {json.dumps(v['uncertainty'])}"] if "uncertainty" in v else []
+        lines.append(f"- **{name}**: " + "; ".join(v["flags"] + v["caveats"] + extra or ["no flag"]))
+    return lines + [""]

@@ -45,7 +45,7 @@ def test_no_import_cycle():
         stack.append(node)
         for nxt in sorted(edges[node]):
             if nxt == "moisst_ns" or node == "moisst_ns":
-                continue  # the package __init__ (which imports compat only) is loaded with any submodule
+                continue  # the package __init__ (which imports nothing) is loaded with any submodule
             if state.get(nxt) == "open":
                 raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(nxt):] + [nxt]))
             if nxt not in state:

@@ -278,7 +278,7 @@ def test_moisst_eval_errors_are_one_line(run, tmp_path):
     (no_errors / "calibration_history.csv").write_text("\n".join([lines[0]] + blanked) + "\n")
     cases = [
         ([tmp_path / "missing.json", truth], "missing.json: (file): file not found"),
-        ([bad_json, truth], "bad.json: line 2: invalid JSON"),
+        ([bad_json, truth], "bad.json: line 2, column 3: invalid JSON: Expecting property name enclosed in double quotes"),
         ([truth], "expected CALIBRATION.json GROUND_TRUTH.json"),
         (["--history", tmp_path / "nowhere"], "calibration_history.csv not found"),
         (["--history", no_errors, "--columns", "errors"], "no error columns"),
@@ -405,6 +405,14 @@ def test_report_outputs(run):
     last = read_csv_tail(run["config"].parent / "calibration_history.csv", 1)
     row = next(line for line in report.splitlines() if line.startswith("| lidar |"))
     assert row.split("|")[2].strip() == "9" and f"{float(last['lidar'][0]['x']):.4f}" in row
+    # the verdict: before/after errors of every non-reference sensor, and which to trust
+    verdicts = json.loads((report_dir / "report.json").read_text())["verdicts"]
+    assert sorted(verdicts) == ["cam_front_right", "cam_left", "lidar"]
+    assert all("errors_before" in v and "errors_after" in v and isinstance(v["trust"], bool) for v in verdicts.values())
+    assert "## Verdict" in report and "**Trust: " in report
+    before_after = next(line for line in report.splitlines() if line.startswith("| lidar | ") and line.count("|") == 4)
+    b = verdicts["lidar"]["errors_before"]
+    assert before_after.split("|")[2].strip() == f"{b['translation_cm']:.2f} / {b['rotation_deg']:.3f} / {b['time_ms']:.2f}"
     assert tree_hash(run["rig"]) == run["before"]
 
 

@@ -189,7 +189,27 @@ def test_rig_json_not_found(rig_dir):
 
 def test_invalid_json(rig_dir):
     (rig_dir / "rig.json").write_text('{\n "format": "moisst-rig/1",\n "sensors": {,}\n}\n')
-    rig_error(rig_dir, "line 3", "invalid JSON")
+    rig_error(rig_dir, "line 3, column 14", "invalid JSON: Expecting property name enclosed in double quotes$")
+
+
+def test_truncated_json_names_line_and_column(rig_dir):
+    text = (rig_dir / "rig.json").read_text()
+    cut = text.index('"', text.index('"frames"') + 12) + 4  # inside a string of the frames list
+    (rig_dir / "rig.json").write_text(text[:cut])
+    line = text[:cut].count("\n") + 1
+    column = cut - (text.rfind("\n", 0, cut) + 1) - 3  # the string's opening quote
+    rig_error(rig_dir, f"line {line}, column {column}", "invalid JSON: Unterminated string starting there$")
+
+
+def test_missing_dataset_folder_says_so(tmp_path):
+    with pytest.raises(RigFormatError) as info:
+        load_rig(tmp_path / "no" / "such")
+    assert str(info.value) == f"{tmp_path / 'no' / 'such'}: dataset: folder not found"
+
+
+def test_folder_without_rig_json_says_so(tmp_path):
+    with pytest.raises(RigFormatError, match=r"rig\.json: rig\.json: file not found \(the dataset folder has no rig\.json\)$"):
+        load_rig(tmp_path)
 
 
 def test_top_level_not_an_object(rig_dir):
@@ -672,7 +692,7 @@ def test_load_calibration_non_rigid(rig_dir):
     "content, field, phrase",
     [
         (None, "(file)", "file not found"),
-        ("{bad", "line 1", "invalid JSON"),
+        ("{bad", "line 1, column 2", "invalid JSON: Expecting property name enclosed in double quotes"),
         ("[]", "(top level)", "must be a JSON object"),
         ('{"sensors": {}}', "reference_sensor", "^missing$"),
         ('{"reference_sensor": "a"}', "sensors", "^missing$"),

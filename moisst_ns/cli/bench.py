@@ -6,6 +6,7 @@ import tyro
 
 from moisst_ns.bench import BenchConfig, BenchError, run_bench
 from moisst_ns.cli.common import fail
+from moisst_ns.quiet import quiet_third_party
 
 
 def main() -> None:
@@ -13,6 +14,7 @@ def main() -> None:
     cfg = tyro.cli(BenchConfig)
     if cfg.quick and cfg.full:
         fail("moisst-bench", "--quick and --full are exclusive")
+    quiet_third_party()  # known-harmless third-party warnings hidden; PYTHONWARNINGS=default shows everything
     try:
         run_bench(cfg)
     except BenchError as err:

@@ -18,6 +18,7 @@ import tyro
 from moisst_ns.cli.common import fail
 from moisst_ns.pipeline import CalibrateConfig, CalibrationError
 from moisst_ns.pipeline import run_calibration as _run_calibration
+from moisst_ns.quiet import quiet_third_party
 from moisst_ns.rig.format import RigFormatError
 
 PROG = "moisst-calibrate"
@@ -42,6 +43,7 @@ def not_converged(calibration: Path) -> list:
 
 def main() -> None:
     cfg = tyro.cli(CalibrateConfig, prog=PROG)
+    quiet_third_party(cfg.verbose)
     run_calibration(cfg)
     bad = not_converged(cfg.output_dir / "calibration.json")
     if bad:

@@ -29,6 +29,7 @@ from typing import Annotated
 import tyro
 
 from moisst_ns.cli.common import fail
+from moisst_ns.quiet import quiet_third_party
 from moisst_ns.runs import RunError
 from moisst_ns.runs.folder import (
     build_summary,
@@ -54,6 +55,8 @@ class ExportConfig:
     config.yml is accepted too."""
     output_dir: Annotated[Path, tyro.conf.arg(metavar="OUT")]
     """Folder for the exported files (created; must not be a file nor lie inside the dataset folder)."""
+    verbose: bool = False
+    """Show every third-party warning (known-harmless ones are hidden by default: ``moisst_ns.quiet``)."""
 
 
 def run_export(cfg: ExportConfig) -> Path:
@@ -94,6 +97,7 @@ def run_export(cfg: ExportConfig) -> Path:
 def main() -> None:
     """Console script ``moisst-export``."""
     cfg = tyro.cli(ExportConfig)
+    quiet_third_party(cfg.verbose)
     try:
         out = run_export(cfg)
     except RunError as err:

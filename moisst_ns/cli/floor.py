@@ -6,6 +6,7 @@ from __future__ import annotations
 import tyro
 
 from moisst_ns.cli.common import fail
+from moisst_ns.quiet import quiet_third_party
 from moisst_ns.floor import FloorConfig, FloorError, floor_summary, run_floor
 
 
@@ -13,6 +14,7 @@ def main() -> None:
     from moisst_ns.rig.format import RigFormatError
 
     cfg = tyro.cli(FloorConfig, config=(tyro.conf.PositionalRequiredArgs,))
+    quiet_third_party(cfg.verbose)
     try:
         result = run_floor(cfg)
     except (FloorError, RigFormatError) as err:

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import tyro
 
 from moisst_ns.cli.common import fail
-from moisst_ns.report import write_report
+from moisst_ns.quiet import quiet_third_party
 from moisst_ns.rig.format import RigFormatError
 from moisst_ns.runs import RunError
 from moisst_ns.runs.folder import resolve_config_path
@@ -29,11 +29,16 @@ class ReportConfig:
     """Render one frame per camera with the model at its calibrated pose (--no-render skips it)."""
     render_width: int = 160
     """Width of those renders, pixels (never upscaled; keeps the render cheap on CPU)."""
+    verbose: bool = False
+    """Show every third-party warning (known-harmless ones are hidden by default: ``moisst_ns.quiet``)."""
 
 
 def main() -> None:
     """Console script ``moisst-report``."""
     cfg = tyro.cli(ReportConfig)
+    quiet_third_party(cfg.verbose)
+    from moisst_ns.report import write_report  # numpy/jaxtyping/nerfstudio: after the command line parsed
+
     try:
         config_path = resolve_config_path(cfg.run)
         out = cfg.output_dir if cfg.output_dir is not None else config_path.parent / "report"

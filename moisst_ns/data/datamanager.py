@@ -9,6 +9,7 @@ is the measured range (``batch["lidar_range"]``, model units).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import Dict, Tuple, Type
 
@@ -19,6 +20,8 @@ from torch import Tensor
 
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
+from nerfstudio.data.utils.dataloaders import CacheDataloader, FixedIndicesEvalDataloader, RandIndicesEvalDataloader
+from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from moisst_ns.data.layout import RayLayout
@@ -123,6 +126,41 @@ class MoisstDataManager(VanillaDataManager):
             if n > 0 and bool(mask.any()):
                 parts.append(sample_images(sampler, image_batch, torch.nonzero(mask)[:, 0], n))
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+    def loader_workers(self) -> int:
+        """DataLoader workers: nerfstudio's 4 per process, but never more than the cores this process may use
+        (torch warns, and the workers only compete with training, on a 2-core machine)."""
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        return max(1, min(self.world_size * 4, cores))
+
+    def setup_train(self):
+        """nerfstudio's ``VanillaDataManager.setup_train`` with the worker count sized to the machine."""
+        assert self.train_dataset is not None
+        CONSOLE.print("Setting up training dataset...")
+        self.train_image_dataloader = CacheDataloader(
+            self.train_dataset, num_images_to_sample_from=self.config.train_num_images_to_sample_from,
+            num_times_to_repeat_images=self.config.train_num_times_to_repeat_images, device=self.device,
+            num_workers=self.loader_workers(), pin_memory=True, collate_fn=self.config.collate_fn,
+            exclude_batch_keys_from_device=self.exclude_batch_keys_from_device)
+        self.iter_train_image_dataloader = iter(self.train_image_dataloader)
+        self.train_pixel_sampler = self._get_pixel_sampler(self.train_dataset, self.config.train_num_rays_per_batch)
+        self.train_ray_generator = RayGenerator(self.train_dataset.cameras.to(self.device))
+
+    def setup_eval(self):
+        """nerfstudio's ``VanillaDataManager.setup_eval`` with the worker count sized to the machine."""
+        assert self.eval_dataset is not None
+        CONSOLE.print("Setting up evaluation dataset...")
+        workers = self.loader_workers()
+        self.eval_image_dataloader = CacheDataloader(
+            self.eval_dataset, num_images_to_sample_from=self.config.eval_num_images_to_sample_from,
+            num_times_to_repeat_images=self.config.eval_num_times_to_repeat_images, device=self.device,
+            num_workers=workers, pin_memory=True, collate_fn=self.config.collate_fn,
+            exclude_batch_keys_from_device=self.exclude_batch_keys_from_device)
+        self.iter_eval_image_dataloader = iter(self.eval_image_dataloader)
+        self.eval_pixel_sampler = self._get_pixel_sampler(self.eval_dataset, self.config.eval_num_rays_per_batch)
+        self.eval_ray_generator = RayGenerator(self.eval_dataset.cameras.to(self.device))
+        self.fixed_indices_eval_dataloader = FixedIndicesEvalDataloader(input_dataset=self.eval_dataset, device=self.device, num_workers=workers)
+        self.eval_dataloader = RandIndicesEvalDataloader(input_dataset=self.eval_dataset, device=self.device, num_workers=workers)
 
     @property
     def has_lidar(self) -> bool:

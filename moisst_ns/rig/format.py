@@ -246,6 +246,18 @@ def _image_size(path: Path) -> Tuple[int, int]:
         return img.size
 
 
+def read_json(file: Path) -> object:
+    """Parse a JSON file; a syntax error (e.g. a truncated file) is a one-line ``RigFormatError`` naming the file,
+    the line and the column."""
+    try:
+        return json.loads(file.read_text())
+    except json.JSONDecodeError as err:
+        msg = err.msg[: -len(" at")] + " there" if err.msg.endswith(" starting at") else err.msg
+        raise RigFormatError(file, f"line {err.lineno}, column {err.colno}", f"invalid JSON: {msg}") from None
+    except UnicodeDecodeError as err:
+        raise RigFormatError(file, f"byte {err.start}", "not UTF-8 text") from None
+
+
 def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
     """Load and validate ``DATASET/rig.json`` (and its trajectory, and the frames' files).
 
@@ -259,12 +271,13 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
     path = Path(dataset)
     file = path if path.suffix == ".json" else path / "rig.json"
     root = file.parent
+    if not root.exists():
+        raise RigFormatError(root, "dataset", "folder not found")
+    if not root.is_dir():
+        raise RigFormatError(root, "dataset", "not a folder (give the dataset folder holding rig.json)")
     if not file.is_file():
-        raise RigFormatError(file, "rig.json", "file not found")
-    try:
-        raw = json.loads(file.read_text())
-    except json.JSONDecodeError as err:
-        raise RigFormatError(file, f"line {err.lineno}", f"invalid JSON: {err.msg}") from None
+        raise RigFormatError(file, "rig.json", "file not found (the dataset folder has no rig.json)")
+    raw = read_json(file)
     if not isinstance(raw, dict):
         raise RigFormatError(file, "(top level)", "must be a JSON object")
     for key in TOP_KEYS:
@@ -405,10 +418,7 @@ def load_calibration(path: Path | str) -> Calibration:
     file = Path(path)
     if not file.is_file():
         raise RigFormatError(file, "(file)", "file not found")
-    try:
-        raw = json.loads(file.read_text())
-    except json.JSONDecodeError as err:
-        raise RigFormatError(file, f"line {err.lineno}", f"invalid JSON: {err.msg}") from None
+    raw = read_json(file)
     if not isinstance(raw, dict):
         raise RigFormatError(file, "(top level)", "must be a JSON object")
     for key in ("reference_sensor", "sensors"):
