@@ -123,7 +123,7 @@ def _drive(name: str, noise: dict, knock_deg: float = 0.0) -> DriveEstimate:
     return DriveEstimate(name, sensors)
 
 
-SIGMA = np.array([0.01, 0.01, 0.01, 0.1, 0.1, 0.1, 0.001])
+SIGMA = {n: np.array([0.01, 0.01, 0.01, 0.1, 0.1, 0.1, 0.001]) for n in BASE}
 
 
 def test_weighted_median():
@@ -173,16 +173,98 @@ def test_drives_own_uncertainty_replaces_the_spread():
     assert sigma_from_uncertainty({"translation_m": [0.01] * 3}) is None
 
 
-def test_fleet_spread_pools_residuals_of_every_vehicle():
-    rot = [0.1, -0.1, 0.2, -0.2, 0.3, -0.3]  # half-differences of 3 pairs -> residuals |0.1..0.3| * sqrt(2)
-    vehicles = {f"v{k}": [_drive("a", {"cam_b": (0.0, rot[2 * k], 0.0)}), _drive("b", {"cam_b": (0.0, rot[2 * k + 1], 0.0)})]
-                for k in range(3)}
+def test_fleet_spread_is_per_sensor_pooled_over_vehicles():
+    dt = [0.01, -0.01, 0.02, -0.02, 0.04, -0.04]  # cam_b: pairs of drives ±1, ±2, ±4 cm on every axis, 3 vehicles
+    vehicles = {f"v{k}": [_drive("a", {"cam_b": (dt[2 * k], 0.0, 0.0), "lidar": (0.0001, 0.0, 0.0)}),
+                          _drive("b", {"cam_b": (dt[2 * k + 1], 0.0, 0.0)})] for k in range(3)}
     sigma = fleet_spread(vehicles, {v: "cam_a" for v in vehicles})
-    # rotation residuals: rot_y |0.1|,|0.1|,|0.2|,|0.2|,|0.3|,|0.3| times sqrt(2), rot_x/rot_z 0 (six each): median of 18
-    # values = 0 ... so the floor; lidar adds 6 zeros per axis too
-    np.testing.assert_allclose(sigma, SIGMA_FLOOR)
-    vehicles = {"v": [_drive("a", {"cam_b": (0.05, 0.0, 0.0), "lidar": (0.05, 0.0, 0.0)}),
-                      _drive("b", {"cam_b": (-0.05, 0.0, 0.0), "lidar": (-0.05, 0.0, 0.0)})]}
-    sigma = fleet_spread(vehicles, {"v": "cam_a"})
-    np.testing.assert_allclose(sigma[:3], 1.4826 * 0.05 * np.sqrt(2), rtol=1e-9)  # every axis moved by ±5 cm
-    assert COMPONENTS[6] == "time_offset" and sigma[6] == SIGMA_FLOOR[6]
+    # cam_b translation residuals |1|,|2|,|4| cm (six of each) * sqrt(2 / 1): median 2 cm; rotation and time agree
+    np.testing.assert_allclose(sigma["cam_b"][:3], 1.4826 * 0.02 * np.sqrt(2), rtol=1e-9)
+    np.testing.assert_allclose(sigma["cam_b"][3:], SIGMA_FLOOR[3:])
+    np.testing.assert_allclose(sigma["lidar"], SIGMA_FLOOR)  # the LiDAR's 0.05 mm is below the floor
+    assert COMPONENTS[6] == "time_offset" and set(sigma) == {"cam_b", "lidar"}
+
+
+# ------------------------------------------------------------------------------------------------ fleets on Ray
+
+
+TINY = dict(width=32, height=24, frames=6, lidar_beams=8, lidar_azimuth_steps=128, lidar_max_points=512)
+
+
+@pytest.fixture(scope="module")
+def tiny_drives(tmp_path_factory):
+    """Three tiny drives: two of vehicle ``van`` (one rig, two paths) and one of ``car``."""
+    from moisst_ns.datasets.synth import SynthConfig, make_rig
+
+    root = tmp_path_factory.mktemp("drives")
+    for name, seed, rig_seed in (("van-1", 11, 1), ("van-2", 12, 1), ("car-1", 21, 2)):
+        make_rig(SynthConfig(out=root / name, seed=seed, rig_seed=rig_seed, **TINY))
+    return root
+
+
+def _manifest(path: Path, drives, steps: int = 3) -> Path:
+    text = f"[calibrate]\nmax_num_iterations = {steps}\nreport = false\n"
+    for drive_id, vehicle, dataset in drives:
+        text += f'\n[[drive]]\nid = "{drive_id}"\nvehicle = "{vehicle}"\ndataset = "{dataset}"\n'
+    return _write(path, text)
+
+
+def test_a_corrupted_drive_fails_alone_and_the_fleet_completes(tmp_path, tiny_drives):
+    import shutil
+
+    from moisst_ns.fleet.run import FleetConfig, run_fleet
+
+    bad = tmp_path / "bad"
+    shutil.copytree(tiny_drives / "car-1", bad)
+    image = sorted((bad / "images" / "cam_left").glob("*.png"))[2]
+    image.write_bytes(b"not a png")
+    before = {name: tree_hash(tiny_drives / name) for name in ("van-1", "van-2")}
+    manifest = _manifest(tmp_path / "fleet.toml", [("van-1", "van", tiny_drives / "van-1"), ("bad-1", "car", bad),
+                                                   ("van-2", "van", tiny_drives / "van-2")])
+    out = tmp_path / "out"
+    lines = []
+    fleet = run_fleet(FleetConfig(manifest, output_dir=out, cpus=2, cpus_per_drive=1, retries=1), report=lines.append)
+    rows = {r["id"]: r for r in fleet["drives"]}
+    assert [rows[d]["status"] for d in ("van-1", "bad-1", "van-2")] == ["done", "failed", "done"]
+    reason = rows["bad-1"]["reason"]
+    assert "\n" not in reason and image.name in reason, reason
+    assert any(line.startswith("bad-1 FAILED: ") for line in lines), lines
+    for d in ("van-1", "van-2"):
+        assert (out / "van" / d / "fleet_done.json").is_file() and (out / "van" / d / "calibration.json").is_file()
+        assert set(rows[d]["sensors"]) == {"cam_front_right", "cam_left", "lidar"} and rows[d]["wall_s"] > 0
+    assert not (out / "car" / "bad-1" / "fleet_done.json").exists()
+    saved = json.loads((out / "fleet.json").read_text())
+    assert saved["vehicles"]["van"]["drives"] == ["van-1", "van-2"] and saved["vehicles"]["car"]["calibration"] is None
+    assert (out / "van" / "calibration.json").is_file() and "| bad-1 | car | failed: " in (out / "fleet.md").read_text()
+    assert sorted(p.name for p in (out / "plots").iterdir()) == ["cam_front_right.png", "cam_left.png", "lidar.png"]
+    assert {name: tree_hash(tiny_drives / name) for name in ("van-1", "van-2")} == before  # datasets never written
+
+
+def _fleet_cmd(manifest: Path, out: Path):
+    return [sys.executable, "-m", "moisst_ns.cli.fleet", str(manifest), "--output-dir", str(out), "--cpus", "1"]
+
+
+def test_a_killed_fleet_run_resumes_with_only_the_missing_drives(tmp_path, tiny_drives):
+    manifest = _manifest(tmp_path / "fleet.toml", [("van-1", "van", tiny_drives / "van-1"), ("van-2", "van", tiny_drives / "van-2"),
+                                                   ("car-1", "car", tiny_drives / "car-1")], steps=30)
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(_fleet_cmd(manifest, out), cwd=ROOT, env=env, start_new_session=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    first = out / "van" / "van-1" / "fleet_done.json"
+    deadline = time.monotonic() + 900  # a safety net, not a timing assertion
+    while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert first.exists(), proc.communicate()[0] if proc.poll() is not None else "first drive never finished"
+    os.killpg(proc.pid, signal.SIGKILL)  # the driver and its local Ray (one drive at a time: the 2nd was running)
+    proc.wait()
+    assert not (out / "car" / "car-1" / "fleet_done.json").exists() and not (out / "fleet.json").exists()
+    marker = first.read_bytes()
+    log_stat = (out / "van" / "van-1" / "calibrate.log").stat().st_mtime_ns
+    rerun = subprocess.run(_fleet_cmd(manifest, out), cwd=ROOT, env=env, capture_output=True, text=True)
+    assert rerun.returncode == 0, rerun.stdout + rerun.stderr
+    assert "1 drive(s) already finished" in rerun.stdout and "2 drive(s) to calibrate on Ray" in rerun.stdout, rerun.stdout
+    fleet = json.loads((out / "fleet.json").read_text())
+    assert [(r["id"], r["status"], r["resumed"]) for r in fleet["drives"]] == \
+        [("van-1", "done", True), ("van-2", "done", False), ("car-1", "done", False)]
+    assert first.read_bytes() == marker and (out / "van" / "van-1" / "calibrate.log").stat().st_mtime_ns == log_stat

@@ -6,9 +6,9 @@ reference sensor's x, y, z axes), both in the reference sensor's frame, and the 
 
 σ of a drive's component: the drive's own uncertainty when its calibration.json carries one (per sensor,
 ``"uncertainty": {"translation_m": [3], "rotation_deg": [3], "time_offset_s": σ}``); otherwise the fleet's
-*spread*: 1.4826 × the median absolute residual from the per-vehicle medians, pooled over every vehicle with two or
-more drives, every non-reference sensor and the three axes of a kind (translation, rotation, time), corrected for
-the median's own share (× sqrt(n / (n - 1)) for n drives), never below ``SIGMA_FLOOR``. The consensus is the
+*spread*: 1.4826 × the median absolute residual from the per-vehicle medians, per sensor name, pooled over every
+vehicle with two or more drives and the three axes of a kind (translation, rotation, time), corrected for the
+median's own share (× sqrt(n / (n - 1)) for n drives), never below ``SIGMA_FLOOR``. The consensus is the
 weighted median (weights 1/σ²) of the drives, so one bad drive of three or more does not move it.
 
 A sensor *moved* between drives k and k+1 (drives in manifest order) when, for some component, the weighted medians
@@ -153,12 +153,15 @@ def _center(estimates: Sequence[SensorEstimate], sigmas: np.ndarray):
     return center, float(med[6])
 
 
-def fleet_spread(vehicles: Dict[str, List[DriveEstimate]], reference: Dict[str, str]) -> np.ndarray:
-    """The fleet's spread-based σ of the seven components (see the module docstring); ``SIGMA_FLOOR`` if too few drives."""
-    residuals: List[List[float]] = [[], [], []]
+def fleet_spread(vehicles: Dict[str, List[DriveEstimate]], reference: Dict[str, str]) -> Dict[str, np.ndarray]:
+    """Per sensor name, the fleet's spread-based σ of the seven components (see the module docstring): pooled over
+    the vehicles (one rig model: a sensor of that name is as precise on every vehicle), never over sensors (a LiDAR
+    calibrates to hundredths of a degree where a camera may wander by degrees); ``SIGMA_FLOOR`` without two drives."""
+    residuals: Dict[str, List[List[float]]] = {}
     for vehicle, drives in vehicles.items():
         names = sorted({n for d in drives for n in d.sensors} - {reference[vehicle]})
         for name in names:
+            pool = residuals.setdefault(name, [[], [], []])
             ests = [d.sensors[name] for d in drives if name in d.sensors]
             n = len(ests)
             if n < 2:
@@ -166,12 +169,15 @@ def fleet_spread(vehicles: Dict[str, List[DriveEstimate]], reference: Dict[str, 
             center, delta = _center(ests, np.ones((n, 7)))
             rel = np.abs(np.stack([components(e, center, delta) for e in ests])) * np.sqrt(n / (n - 1))
             for g, group in enumerate(GROUPS):
-                residuals[g].extend(rel[:, group].ravel())
-    sigma = SIGMA_FLOOR.copy()
-    for g, group in enumerate(GROUPS):
-        if residuals[g]:
-            sigma[group] = np.maximum(SIGMA_FLOOR[group], MAD_TO_SIGMA * float(np.median(residuals[g])))
-    return sigma
+                pool[g].extend(rel[:, group].ravel())
+    out = {}
+    for name, pool in residuals.items():
+        sigma = SIGMA_FLOOR.copy()
+        for g, group in enumerate(GROUPS):
+            if pool[g]:
+                sigma[group] = np.maximum(SIGMA_FLOOR[group], MAD_TO_SIGMA * float(np.median(pool[g])))
+        out[name] = sigma
+    return out
 
 
 def _find_move(name: str, ids: List[str], x: np.ndarray, sig: np.ndarray, flag_sigma: float) -> Optional[Move]:
@@ -196,13 +202,14 @@ def _find_move(name: str, ids: List[str], x: np.ndarray, sig: np.ndarray, flag_s
     return best
 
 
-def vehicle_consensus(drives: List[DriveEstimate], reference: str, spread_sigma: np.ndarray, flag_sigma: float = 5.0) -> VehicleConsensus:
+def vehicle_consensus(drives: List[DriveEstimate], reference: str, spread_sigma: Dict[str, np.ndarray], flag_sigma: float = 5.0) -> VehicleConsensus:
     """Combine one vehicle's drives (in the order driven) sensor by sensor.
 
     Args:
         drives: the vehicle's finished drives, in order.
         reference: the reference sensor (skipped).
-        spread_sigma: the fleet's σ of the seven components (``fleet_spread``), used where a drive has no own σ.
+        spread_sigma: per sensor, the fleet's σ of the seven components (``fleet_spread``), used where a drive has
+            no own σ (``SIGMA_FLOOR`` for a sensor missing there).
         flag_sigma: threshold, in σ units, of a "deviates" verdict and of a flagged move.
 
     Returns:
@@ -213,7 +220,8 @@ def vehicle_consensus(drives: List[DriveEstimate], reference: str, spread_sigma:
         have = [d for d in drives if name in d.sensors]
         ids = [d.drive for d in have]
         ests = [d.sensors[name] for d in have]
-        sig = np.stack([spread_sigma if e.sigma is None else np.maximum(np.asarray(e.sigma, float), 1e-12) for e in ests])
+        spread = spread_sigma.get(name, SIGMA_FLOOR)
+        sig = np.stack([spread if e.sigma is None else np.maximum(np.asarray(e.sigma, float), 1e-12) for e in ests])
         center, delta = _center(ests, sig)
         x = np.stack([components(e, center, delta) for e in ests])
         move = _find_move(name, ids, x, sig, flag_sigma) if len(ests) > 1 else None
@@ -231,7 +239,7 @@ def vehicle_consensus(drives: List[DriveEstimate], reference: str, spread_sigma:
 
 
 def fleet_consensus(vehicles: Dict[str, List[DriveEstimate]], reference: Dict[str, str], flag_sigma: float = 5.0):
-    """Every vehicle's consensus, with the fleet's spread σ; returns ``(consensus per vehicle, spread σ)``."""
+    """Every vehicle's consensus, with the fleet's spread σ; returns ``(consensus per vehicle, spread σ per sensor)``."""
     sigma = fleet_spread(vehicles, reference)
     return {v: vehicle_consensus(d, reference[v], sigma, flag_sigma) for v, d in vehicles.items() if d}, sigma
 

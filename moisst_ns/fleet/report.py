@@ -85,7 +85,7 @@ def write_reports(cfg, manifest: Manifest, rows: List[Dict[str, Any]], wall_s: f
         blocks.setdefault(vehicle, {"calibration": None, "drives": [], "sensors": {}, "moves": [], "note": "no finished drive"})
     fleet = {"format": FORMAT, "manifest": str(manifest.path), "written": time.strftime("%Y-%m-%dT%H:%M:%S"),
              "wall_s": wall_s, "cpus_per_drive": cfg.cpus_per_drive, "flag_sigma": cfg.flag_sigma,
-             "sigma_source": source, "spread_sigma": _comps(spread), "drives": rows, "vehicles": blocks}
+             "sigma_source": source, "spread_sigma": {n: _comps(v) for n, v in sorted(spread.items())}, "drives": rows, "vehicles": blocks}
     (out / "fleet.json").write_text(json.dumps(fleet, indent=1) + "\n")
     plots = write_plots(out / "plots", consensus, spread, cfg.flag_sigma)
     (out / "fleet.md").write_text(fleet_markdown(fleet, plots, out))
@@ -103,7 +103,7 @@ def fleet_markdown(fleet: Dict[str, Any], plots: List[Path], out: Path) -> str:
              f"{fleet['wall_s']:.0f} s wall, {fleet['cpus_per_drive']} CPU per drive. Flag threshold {fleet['flag_sigma']:g} σ; "
              f"σ from {fleet['sigma_source']}" + (" (the drives' calibration.json carry no uncertainty: robust spread of the "
                                                     "fleet, 1.4826 × median absolute residual)" if fleet["sigma_source"] == "spread" else "")
-             + ": " + ", ".join(f"{c} {_fmt(c, v).lstrip('+')}" for c, v in fleet["spread_sigma"].items()) + ".", "",
+             + ":", ""] + [f"* {n}: " + ", ".join(f"{c} {_fmt(c, v).lstrip('+')}" for c, v in s.items()) for n, s in fleet["spread_sigma"].items()] + ["",
              "| drive | vehicle | status | wall | sensors (verdict, largest deviation in σ) |", "|---|---|---|---|---|"]
     for row in fleet["drives"]:
         wall = f"{row['wall_s']:.0f} s" if row["wall_s"] is not None else "-"
@@ -128,7 +128,7 @@ def fleet_markdown(fleet: Dict[str, Any], plots: List[Path], out: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_plots(folder: Path, consensus: Dict[str, Any], spread: np.ndarray, flag_sigma: float) -> List[Path]:
+def write_plots(folder: Path, consensus: Dict[str, Any], spread: Dict[str, np.ndarray], flag_sigma: float) -> List[Path]:
     """One PNG per sensor: its seven components per drive minus its vehicle's consensus, a line per vehicle, with
     the ±flag_sigma·σ band of the fleet's spread."""
     import matplotlib
@@ -143,7 +143,8 @@ def write_plots(folder: Path, consensus: Dict[str, Any], spread: np.ndarray, fla
         fig, axes = plt.subplots(1, 7, figsize=(17, 3.0), constrained_layout=True)
         for j, (ax, comp) in enumerate(zip(axes, COMPONENTS)):
             scale, unit = SHOW[UNIT[comp]]
-            ax.axhspan(-flag_sigma * spread[j] * scale, flag_sigma * spread[j] * scale, color="0.9", zorder=0)
+            band = flag_sigma * spread[name][j] * scale
+            ax.axhspan(-band, band, color="0.9", zorder=0)
             for vehicle, vc in consensus.items():
                 sc = vc.sensors.get(name)
                 if sc is None:

@@ -131,6 +131,9 @@ def start_ray(cfg: FleetConfig) -> None:
     import logging
 
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # nothing leaves the machine
+    # a busy 2-core machine can take over a minute to start Ray's agents; Ray's defaults give up sooner
+    for name in ("RAY_agent_register_timeout_ms", "RAY_raylet_start_wait_time_s"):
+        os.environ.setdefault(name, "600000" if name.endswith("_ms") else "600")
     try:
         import ray
     except ImportError:
