@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sys
 import time
 from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass
@@ -126,27 +127,44 @@ def check_folders(manifest: Manifest, out: Path) -> None:
             raise FleetError(f"{manifest.path}: drive {drive.id}: dataset {drive.dataset} and its output folder {folder} overlap")
 
 
-def start_ray(cfg: FleetConfig) -> None:
-    """``ray.init``: the cluster at ``--address``, else a local, quiet, loopback-only Ray with ``--cpus`` CPUs."""
+def _skip_slow_import(shim: Path) -> None:
+    """Make ``rfc3987_syntax`` unimportable in the Ray processes started from now on (not in this one).
+
+    jsonschema's optional IRI format checker builds a Lark grammar when imported: 4.5 of the 6.9 s that Ray's dashboard
+    agent takes to import in this environment (``python -X importtime``). Ray 2.60's raylet gives that agent a hard
+    15 s to report its ports and aborts otherwise, after which ``ray.init`` waits forever: seen on 2 cores at load 8,
+    and always under ``nice``. Ray's processes inherit PYTHONPATH, so a stand-in package that raises ImportError makes
+    jsonschema skip that one format checker there.
+    """
+    import importlib.util
+
+    if importlib.util.find_spec("rfc3987_syntax") is None:
+        return
+    (shim / "rfc3987_syntax").mkdir(parents=True, exist_ok=True)
+    (shim / "rfc3987_syntax" / "__init__.py").write_text('raise ImportError("skipped in Ray processes by moisst-fleet (slow import)")\n')
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(shim)] + [q for q in os.environ.get("PYTHONPATH", "").split(os.pathsep) if q])
+
+
+def start_ray(cfg: FleetConfig, shim: Path) -> None:
+    """``ray.init``: the cluster at ``--address``, else a local, quiet Ray (no dashboard, no usage statistics, nothing
+    downloaded) with ``--cpus`` CPUs; ``shim``: a scratch folder for ``_skip_slow_import``."""
     import logging
 
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # nothing leaves the machine
-    # a busy 2-core machine can take over a minute to start Ray's agents; Ray's defaults give up sooner
-    for name in ("RAY_agent_register_timeout_ms", "RAY_raylet_start_wait_time_s"):
-        os.environ.setdefault(name, "600000" if name.endswith("_ms") else "600")
     try:
         import ray
     except ImportError:
         raise FleetError("ray is not installed: run scripts/install.sh (README: set-up)") from None
-    kwargs = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR, configure_logging=True)
+    kwargs = dict(log_to_driver=False, logging_level=logging.ERROR)
     if cfg.address is None:
-        kwargs.update(num_cpus=cfg.cpus or os.cpu_count() or 1, _node_ip_address="127.0.0.1")
+        kwargs.update(num_cpus=cfg.cpus or os.cpu_count() or 1, num_gpus=0, include_dashboard=False)
         # local workers inherit this environment: let them import moisst_ns from where the driver did
         package_parent = str(Path(__file__).resolve().parents[2])
-        os.environ["PYTHONPATH"] = os.pathsep.join([package_parent] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
+        os.environ["PYTHONPATH"] = os.pathsep.join([package_parent] + [q for q in os.environ.get("PYTHONPATH", "").split(os.pathsep) if q])
+        _skip_slow_import(shim)
     try:
-        ray.init(address=cfg.address, **kwargs)
-    except Exception as err:  # connection refused, bad address, ...
+        ray.init(address=cfg.address or "local", **kwargs)  # "local": a new Ray, never one found on the machine
+    except Exception as err:  # connection refused, bad address, a node that did not start
         raise FleetError(f"--address {cfg.address}: cannot start or reach Ray: {one_line(err)}") from None
 
 
@@ -177,8 +195,11 @@ def run_drives(cfg: FleetConfig, manifest: Manifest, report: Callable[[str], Non
         report(f"{skipped} drive(s) already finished in {out} (resume): {', '.join(d.id for d in manifest.drives if rows[d.id]['resumed'])}")
     if not todo:
         return [rows[d.id] for d in manifest.drives]
-    start_ray(cfg)
+    import tempfile
+
+    shim = Path(tempfile.mkdtemp(prefix="moisst-fleet-"))
     try:
+        start_ray(cfg, shim)
         slots = max(1, int(ray.cluster_resources().get("CPU", 1)) // cfg.cpus_per_drive)
         task = ray.remote(calibrate_drive).options(num_cpus=cfg.cpus_per_drive, max_retries=cfg.retries, retry_exceptions=True)
         for drive in todo:
@@ -216,6 +237,7 @@ def run_drives(cfg: FleetConfig, manifest: Manifest, report: Callable[[str], Non
                    f"{failed} failed, {elapsed:.0f} s{eta}")
     finally:
         ray.shutdown()
+        shutil.rmtree(shim, ignore_errors=True)
     return [rows[d.id] for d in manifest.drives]
 
 
