@@ -202,8 +202,8 @@ def tiny_drives(tmp_path_factory):
     return root
 
 
-def _manifest(path: Path, drives, steps: int = 3) -> Path:
-    text = f"[calibrate]\nmax_num_iterations = {steps}\nreport = false\n"
+def _manifest(path: Path, drives, steps: int = 3, extra: str = "") -> Path:
+    text = f"[calibrate]\nmax_num_iterations = {steps}\nreport = false\n{extra}"
     for drive_id, vehicle, dataset in drives:
         text += f'\n[[drive]]\nid = "{drive_id}"\nvehicle = "{vehicle}"\ndataset = "{dataset}"\n'
     return _write(path, text)
@@ -246,7 +246,8 @@ def _fleet_cmd(manifest: Path, out: Path):
 
 def test_a_killed_fleet_run_resumes_with_only_the_missing_drives(tmp_path, tiny_drives):
     manifest = _manifest(tmp_path / "fleet.toml", [("van-1", "van", tiny_drives / "van-1"), ("van-2", "van", tiny_drives / "van-2"),
-                                                   ("car-1", "car", tiny_drives / "car-1")], steps=30)
+                                                   ("car-1", "car", tiny_drives / "car-1")], steps=30,
+                         extra="lidar_first = false\n")  # car-1's 512-point scans are too sparse for the LiDAR stage
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(_fleet_cmd(manifest, out), cwd=ROOT, env=env, start_new_session=True,

@@ -14,7 +14,7 @@ from moisst_ns.fleet.consensus import COMPONENTS, DriveEstimate, SensorEstimate,
 from moisst_ns.fleet.manifest import Manifest, drive_dir
 
 FORMAT = "moisst-fleet/1"
-SHOW = {"m": (100.0, "cm"), "deg": (1.0, "°"), "s": (1000.0, "ms")}
+SHOW = {"m": (100.0, " cm"), "deg": (1.0, "°"), "s": (1000.0, " ms")}
 UNIT = dict(zip(COMPONENTS, ("m", "m", "m", "deg", "deg", "deg", "s")))
 
 
@@ -35,7 +35,7 @@ def _comps(values) -> Dict[str, float]:
 
 def _fmt(comp: str, value: float) -> str:
     scale, unit = SHOW[UNIT[comp]]
-    return f"{scale * value:+.2f} {unit}"
+    return f"{scale * value:+.2f}{unit}"
 
 
 def write_reports(cfg, manifest: Manifest, rows: List[Dict[str, Any]], wall_s: float, report: Callable[[str], None]) -> Dict[str, Any]:
@@ -135,6 +135,7 @@ def write_plots(folder: Path, consensus: Dict[str, Any], spread: Dict[str, np.nd
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     names = sorted({n for vc in consensus.values() for n in vc.sensors})
     folder.mkdir(parents=True, exist_ok=True)
@@ -153,9 +154,10 @@ def write_plots(folder: Path, consensus: Dict[str, Any], spread: Dict[str, np.nd
                 ax.plot(range(len(ids)), [scale * sc.deviation[d][j] for d in ids], "o-", label=vehicle)
                 if sc.move is not None and sc.move.component == comp:
                     ax.axvline(ids.index(sc.move.after) - 0.5, color="red", lw=1)
-            ax.set_title(f"{comp} ({unit})", fontsize=9)
+            ax.set_title(f"{comp} ({unit.strip()})", fontsize=9)
             ax.set_xlabel("drive (per vehicle, in order)", fontsize=7)
             ax.tick_params(labelsize=7)
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         axes[0].legend(fontsize=7)
         fig.suptitle(f"{name}: estimate minus its vehicle's consensus (grey: ±{flag_sigma:g} σ; red: a flagged move)", fontsize=10)
         path = folder / f"{name}.png"
