@@ -156,6 +156,7 @@ def start_ray(cfg: FleetConfig, shim: Path) -> None:
     except ImportError:
         raise FleetError("ray is not installed: run scripts/install.sh (README: set-up)") from None
     kwargs = dict(log_to_driver=False, logging_level=logging.ERROR)
+    saved = os.environ.get("PYTHONPATH")
     if cfg.address is None:
         kwargs.update(num_cpus=cfg.cpus or os.cpu_count() or 1, num_gpus=0, include_dashboard=False)
         # local workers inherit this environment: let them import moisst_ns from where the driver did
@@ -166,6 +167,11 @@ def start_ray(cfg: FleetConfig, shim: Path) -> None:
         ray.init(address=cfg.address or "local", **kwargs)  # "local": a new Ray, never one found on the machine
     except Exception as err:  # connection refused, bad address, a node that did not start
         raise FleetError(f"--address {cfg.address}: cannot start or reach Ray: {one_line(err)}") from None
+    finally:  # Ray's processes took their copy of the environment; leave this process's as it was
+        if saved is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = saved
 
 
 def _progress(line: str) -> None:
@@ -209,7 +215,7 @@ def run_drives(cfg: FleetConfig, manifest: Manifest, report: Callable[[str], Non
             spec = {"id": drive.id, "vehicle": drive.vehicle, "dataset": str(drive.dataset), "out": str(drive_dir(out, drive).resolve()),
                     "threads": cfg.cpus_per_drive, "options": options}
             pending[task.remote(spec)] = drive
-        started, walls = time.time(), []
+        started = time.time()
         report(f"{len(todo)} drive(s) to calibrate on Ray ({slots} at a time, {cfg.cpus_per_drive} CPU each, up to {cfg.retries} retries)")
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1, timeout=30.0)
@@ -219,7 +225,6 @@ def run_drives(cfg: FleetConfig, manifest: Manifest, report: Callable[[str], Non
                 try:
                     result = ray.get(ref)
                     row.update(status="done", wall_s=result["wall_s"])
-                    walls.append(result["wall_s"])
                 except ray.exceptions.RayTaskError as err:
                     row.update(status="failed", reason=one_line(getattr(err, "cause", None) or err))
                 except ray.exceptions.RayError as err:  # a worker that died (killed, out of memory) after its retries
