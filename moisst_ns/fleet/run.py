@@ -19,7 +19,7 @@ import time
 from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Literal, Optional
+from typing import Annotated, Any, Callable, Dict, List, Literal, Optional
 
 import tyro
 
@@ -36,7 +36,7 @@ LOG = "calibrate.log"
 class FleetConfig:
     """Calibrate a fleet of drives on Ray, combine each vehicle's drives and flag sensors that moved."""
 
-    manifest: tyro.conf.Positional[Path]
+    manifest: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="MANIFEST")]
     """Fleet manifest (TOML: [[drive]] tables with id, vehicle, dataset; a [calibrate] table; docs/fleet.md)."""
     output_dir: Path = Path("outputs/fleet")
     """Where OUT/<vehicle>/<drive>/, OUT/<vehicle>/calibration.json, fleet.json, fleet.md and the plots go."""
