@@ -93,11 +93,16 @@ class SynthConfig:
     swinging every 4 s at the curve's varying speed)."""
     overwrite: bool = False
     """Replace the generator's outputs in a non-empty OUT (other files there are left alone)."""
+    rig_seed: Optional[int] = None
+    """Seed of the true extrinsics, time offsets and prior perturbation (default: --seed). Two drives of one vehicle
+    share it and differ in --seed (path, scene), e.g. for ``moisst-fleet``."""
+    knock: Optional[Tuple[str, float]] = None
+    """SENSOR DEG: turn that sensor's true mount by DEG degrees about the vehicle's vertical axis (a mount knocked in
+    the workshop); its prior in rig.json stays the unknocked one."""
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # Small rotation helpers (numpy, float64)
-
 
 
 def _pose(rotation: np.ndarray, translation) -> np.ndarray:
@@ -168,32 +173,8 @@ def _streams(seed: int) -> Dict[str, np.random.SeedSequence]:
 # Textures
 
 
-
-
-
-
-
-
 # ----------------------------------------------------------------------------------------------------------------
 # Scene
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 
 
 def build_scene(config: SynthConfig, path: Optional[VehiclePath] = None) -> Scene:
@@ -249,9 +230,28 @@ def vehicle_T_sensor(name: str, jitter_t=(0.0, 0.0, 0.0), jitter_r=(0.0, 0.0, 0.
     return _pose(_orthonormalise(rot), np.asarray(pos) + np.asarray(jitter_t))
 
 
+def _rig_seed(config: SynthConfig) -> int:
+    return config.seed if config.rig_seed is None else config.rig_seed
+
+
+def knock_mount(config: SynthConfig, truth: Dict[str, SensorTruth]) -> Dict[str, SensorTruth]:
+    """The truth with ``--knock SENSOR DEG`` applied: that sensor turned about the vehicle's z axis, in place."""
+    if config.knock is None:
+        return truth
+    name, degrees = config.knock
+    v_T_ref = vehicle_T_sensor(REFERENCE)
+    sensor = truth[name]
+    v_T_s = v_T_ref @ sensor.T_ref_sensor
+    v_T_s[:3, :3] = _orthonormalise(rot_z(np.deg2rad(degrees)) @ v_T_s[:3, :3])
+    ref_T = _inv(v_T_ref) @ v_T_s
+    ref_T[:3, :3] = _orthonormalise(ref_T[:3, :3])
+    ref_T[3] = [0.0, 0.0, 0.0, 1.0]
+    return {**truth, name: SensorTruth(name, sensor.type, ref_T, sensor.time_offset, sensor.phase)}
+
+
 def make_truth(config: SynthConfig) -> Dict[str, SensorTruth]:
     """True extrinsics (in the reference camera's frame) and time offsets; seeded."""
-    rng = np.random.default_rng(_streams(config.seed)["rig"])
+    rng = np.random.default_rng(_streams(_rig_seed(config))["rig"])
     v_T_ref = vehicle_T_sensor(REFERENCE)
     sign = rng.choice([-1.0, 1.0])
     signs = {"cam_front_right": sign, "cam_left": -sign, "lidar": rng.choice([-1.0, 1.0])}
@@ -271,7 +271,7 @@ def make_truth(config: SynthConfig) -> Dict[str, SensorTruth]:
 
 def make_priors(config: SynthConfig, truth: Dict[str, SensorTruth]) -> Dict[str, Tuple[np.ndarray, float]]:
     """Priors for rig.json: the truth (--perturb none) or the paper's perturbation (--perturb paper)."""
-    rng = np.random.default_rng(_streams(config.seed)["perturb"])
+    rng = np.random.default_rng(_streams(_rig_seed(config))["perturb"])
     priors = {}
     for name in ("cam_front", "cam_front_right", "cam_left", "lidar"):
         signs = rng.choice([-1.0, 1.0], size=7)  # drawn for every sensor, so signs do not depend on --no-lidar
@@ -408,6 +408,8 @@ def _check_config(config: SynthConfig) -> None:
         problems.append("--lidar-beams, --lidar-azimuth-steps and --lidar-max-points must be >= 1")
     if not config.lidar_noise >= 0:
         problems.append(f"--lidar-noise must be >= 0, got {config.lidar_noise}")
+    if config.knock is not None and (config.knock[0] == REFERENCE or config.knock[0] not in MOUNTS):
+        problems.append(f"--knock: sensor must be one of {', '.join(n for n in MOUNTS if n != REFERENCE)}, got {config.knock[0]!r}")
     if problems:
         raise SynthError("; ".join(problems))
 
@@ -425,6 +427,7 @@ def make_rig(config: SynthConfig) -> Path:
     path = make_path(config)
     truth = make_truth(config)
     priors = make_priors(config, truth)
+    truth = knock_mount(config, truth)  # after the priors: they keep the mount as it was
     scene = build_scene(config, path)
 
     # 1. The reference trajectory, written first and read back: rendering uses exactly what consumers will read.
@@ -474,7 +477,7 @@ def make_rig(config: SynthConfig) -> Path:
     sensors = {name: (sensor.type, priors[name][0], priors[name][1], intr if sensor.type == "camera" else {})
                for name, sensor in truth.items()}
     meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")}
-    for key, default in (("lidar_scans", "raw"), ("lidar_noise", 0.0), ("drive", "curve")):  # recorded when used (older rigs stay byte-identical)
+    for key, default in (("lidar_scans", "raw"), ("lidar_noise", 0.0), ("drive", "curve"), ("rig_seed", None), ("knock", None)):  # recorded when used (older rigs stay byte-identical)
         if meta[key] == default:
             del meta[key]
     meta["generator"] = "moisst-synth"
