@@ -247,8 +247,7 @@ def _image_size(path: Path) -> Tuple[int, int]:
 
 
 def read_json(file: Path) -> object:
-    """Parse a JSON file; a syntax error (e.g. a truncated file) is a one-line ``RigFormatError`` naming the file,
-    the line and the column."""
+    """Parse a JSON file; a syntax error is a one-line ``RigFormatError`` naming the file, line and column."""
     try:
         return json.loads(file.read_text())
     except json.JSONDecodeError as err:
@@ -372,16 +371,13 @@ def rig_json(reference_sensor: str, trajectory: str, sensors: Dict[str, tuple], 
         frames: ``{"sensor", "timestamp", "file_path"}`` per frame, in file order.
         metadata: Free-form provenance written under ``"metadata"`` (omitted when None).
 
-    Returns:
-        The JSON object, ready for ``json.dumps``.
+    Returns: the JSON object, ready for ``json.dumps``.
     """
     entries = {name: {"type": kind, "T_ref_sensor": np.asarray(T).tolist(), "time_offset": float(delta), **intrinsics}
                for name, (kind, T, delta, intrinsics) in sensors.items()}
     out = {"format": FORMAT, "reference_sensor": reference_sensor, "trajectory": trajectory, "sensors": entries,
            "frames": frames}
-    if metadata is not None:
-        out["metadata"] = metadata
-    return out
+    return out if metadata is None else {**out, "metadata": metadata}
 
 
 @dataclass
