@@ -72,8 +72,11 @@ def test_lidar_reference_rig_loads(lidar_rig):
 
 
 def test_calibrate_with_lidar_reference(lidar_rig, tmp_path):
-    """Every camera (the old reference included) is calibrated; the LiDAR stays the identity with delta 0."""
-    run_calibration(CalibrateConfig(dataset=lidar_rig, output_dir=tmp_path / "out", max_num_iterations=16, seed=0, threads=2, report=False))
+    """Every camera (the old reference included) is calibrated; the LiDAR stays the identity with delta 0.
+    (``uncertainty=False``: after 16 steps the held-back check may rightly keep a camera's prior, which
+    tests/test_trust.py covers; here the estimates themselves are under test.)"""
+    run_calibration(CalibrateConfig(dataset=lidar_rig, output_dir=tmp_path / "out", max_num_iterations=16, seed=0, threads=2,
+                                    report=False, uncertainty=False))
     estimate = load_calibration(tmp_path / "out" / "calibration.json")
     assert estimate.reference_sensor == "lidar"
     np.testing.assert_array_equal(estimate.T_ref_sensor["lidar"], np.eye(4))

@@ -94,7 +94,8 @@ def test_tiny_calibration_prints_no_third_party_warning(tmp_path):
                    check=True, capture_output=True, text=True)
     result = subprocess.run([str(BIN / "moisst-calibrate"), str(rig), "--output-dir", str(tmp_path / "out"),
                              "--max-num-iterations", "5", "--threads", "1"], capture_output=True, text=True)
-    assert result.returncode == 0, result.stderr[-2000:]
+    # 0, or 3 when a sensor is not converged (5 steps): both are finished runs; 2 or a crash is not
+    assert result.returncode in (0, 3), result.stderr[-2000:]
     warning_lines = [line for line in result.stderr.splitlines() if re.search(r"\w*Warning\b", line)]
     assert warning_lines == [], "\n".join(warning_lines)
     assert "Install tcnn" not in result.stdout
