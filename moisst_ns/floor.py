@@ -21,7 +21,7 @@ from typing import Dict, List, Literal, Optional
 
 import numpy as np
 
-from moisst_ns.pipeline import LIDAR_DEPTH_PER_M2, lidar_scene_settings, seed_everything
+from moisst_ns.pipeline import LIDAR_DEPTH_PER_M2, apply_scene_switches, lidar_scene_settings, rig_trainer_config, seed_everything
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
 
@@ -191,7 +191,6 @@ def run_floor(cfg: FloorConfig) -> dict:
     import torch
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
-    from moisst_ns.method_configs import moisst_trainer_config
     from moisst_ns.rig.format import load_rig
     from moisst_ns.runs import RunError
 
@@ -208,21 +207,12 @@ def run_floor(cfg: FloorConfig) -> dict:
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
 
-    config = moisst_trainer_config(cfg.method, cfg.scene_steps)
-    config.pipeline.datamanager.data = rig.root
-    config.pipeline.datamanager.dataparser.data = rig.root
-    config.output_dir, config.experiment_name, config.timestamp = out, ".", "scene"
-    config.machine.seed = cfg.seed
+    config = rig_trainer_config(cfg.method, cfg.scene_steps, rig.root, out, "scene", cfg.seed)
     config.vis = "tensorboard"
     model, datamanager = config.pipeline.model, config.pipeline.datamanager
+    apply_scene_switches(model, cfg.depth_loss_per_m2, cfg.line_of_sight_mult, cfg.lidar_far_margin)
     if cfg.lidar_scene and any(s.type == "lidar" for s in rig.sensors.values()):
         lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
-    elif cfg.depth_loss_per_m2 is not None:
-        model.depth_loss_units, model.depth_loss_mult = "metric", cfg.depth_loss_per_m2
-    if cfg.line_of_sight_mult is not None:
-        model.line_of_sight_mult = cfg.line_of_sight_mult
-    if cfg.lidar_far_margin is not None:
-        model.lidar_far_margin_m = cfg.lidar_far_margin
     # The scene is built at the true calibration, so the phases that protect it from miscalibrated sensors
     # (reference-only warm-up, detached registration, coarse-to-fine) are switched off: the best scene of this budget.
     model.camera_optimizer.mode = "off"

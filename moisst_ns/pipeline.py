@@ -132,6 +132,48 @@ def lidar_scene_settings(config, depth_per_m2: float) -> None:
     datamanager.lidar_reference_view_only = False
 
 
+def rig_trainer_config(method: str, steps: Optional[int], root: Path, out: Path, timestamp: str, seed: int):
+    """The method's trainer config on a rig dataset, writing its nerfstudio run to ``out/<method>/<timestamp>``.
+
+    Args:
+        method: ``moisst`` or ``moisst-lite``.
+        steps: run length (the method's default when None; schedules scale with it).
+        root: dataset folder.
+        out: output folder.
+        timestamp: the run's folder name under ``out/<method>``.
+        seed: nerfstudio's machine seed.
+
+    Returns:
+        The ``TrainerConfig`` (nerfstudio imported here, not at module import).
+    """
+    from moisst_ns.method_configs import moisst_trainer_config
+
+    config = moisst_trainer_config(method, steps)
+    config.pipeline.datamanager.data = root
+    config.pipeline.datamanager.dataparser.data = root
+    config.output_dir, config.experiment_name, config.timestamp = out, ".", timestamp
+    config.machine.seed = seed
+    return config
+
+
+def apply_scene_switches(model, depth_loss_per_m2: Optional[float], line_of_sight_mult: Optional[float],
+                         lidar_far_margin: Optional[float]) -> None:
+    """The LiDAR-scene switches shared by ``moisst-calibrate`` and ``moisst-floor`` (None: the method's default).
+
+    Args:
+        model: the model config (changed in place).
+        depth_loss_per_m2: metric depth loss weight per m^2.
+        line_of_sight_mult: weight of the line-of-sight loss.
+        lidar_far_margin: LiDAR-guided sampling margin, metres.
+    """
+    if depth_loss_per_m2 is not None:
+        model.depth_loss_units, model.depth_loss_mult = "metric", depth_loss_per_m2
+    if line_of_sight_mult is not None:
+        model.line_of_sight_mult = line_of_sight_mult
+    if lidar_far_margin is not None:
+        model.lidar_far_margin_m = lidar_far_margin
+
+
 class CalibrationError(ValueError):
     """A calibration that cannot start or had to stop; the message is one line naming file/option and problem."""
 
@@ -140,7 +182,6 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     """Train, then write ``calibration.json``; returns the run's config.yml path."""
     import torch
 
-    from moisst_ns.method_configs import moisst_trainer_config
     from moisst_ns.rig.calibration import calibration_report_errors
     from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration, load_rig
 
@@ -153,20 +194,9 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
 
-    config = moisst_trainer_config(cfg.method, cfg.max_num_iterations)
-    config.pipeline.datamanager.data = rig.root
-    config.pipeline.datamanager.dataparser.data = rig.root
-    config.output_dir = out
-    config.experiment_name = "."
-    config.timestamp = "run"
-    config.machine.seed = cfg.seed
+    config = rig_trainer_config(cfg.method, cfg.max_num_iterations, rig.root, out, "run", cfg.seed)
     model = config.pipeline.model
-    if cfg.depth_loss_per_m2 is not None:
-        model.depth_loss_units, model.depth_loss_mult = "metric", cfg.depth_loss_per_m2
-    if cfg.line_of_sight_mult is not None:
-        model.line_of_sight_mult = cfg.line_of_sight_mult
-    if cfg.lidar_far_margin is not None:
-        model.lidar_far_margin_m = cfg.lidar_far_margin
+    apply_scene_switches(model, cfg.depth_loss_per_m2, cfg.line_of_sight_mult, cfg.lidar_far_margin)
     if not cfg.depth_loss:
         model.depth_loss_mult = model.line_of_sight_mult = 0.0
     if not cfg.dssim_loss:
