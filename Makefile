@@ -7,7 +7,8 @@ install:
 # Built-in demo: synthetic rig with perturbed priors -> calibration -> before/after error table.
 demo: install
 	.venv/bin/moisst-synth demo/rig --perturb paper --overwrite
-	.venv/bin/moisst-calibrate demo/rig --output-dir demo/calibration --method moisst-lite
+	@# exit status 3 = finished, but some sensor is not converged (its last lines say which to trust): not a failed demo
+	.venv/bin/moisst-calibrate demo/rig --output-dir demo/calibration --method moisst-lite || [ $$? -eq 3 ]
 
 test: install
 	.venv/bin/python -m pytest -q tests
