@@ -92,6 +92,12 @@ class CalibrateConfig:
     verbose: bool = False
     """Show every third-party warning and banner (by default the known-harmless ones are hidden:
     ``moisst_ns.quiet``)."""
+    camera_registration: bool = True
+    """After the LiDAR-first stage, register every camera against the calibrated LiDAR map (photometric consistency
+    of the map's points between the cameras' frames; no NeRF; into OUT/camera_registration). The NeRF then holds the
+    registered cameras there and trains the scene. --no-camera-registration: the NeRF calibrates the cameras."""
+    camera_refinement: bool = False
+    """Let the NeRF move the registered cameras further (the paper's joint refinement) instead of holding them."""
     lidar_first: bool = True
     """Calibrate every LiDAR from its own scans before the NeRF (``moisst-lidar-calibrate``, into OUT/lidar_first);
     the NeRF starts from that estimate, holds the LiDARs there and lets their depth shape the scene.
@@ -238,9 +244,12 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     truth = load_calibration(truth_file) if truth_file.is_file() else None
     prior = Calibration.from_rig(rig)
     stage = run_lidar_first(cfg, rig, prior, truth, out) if cfg.lidar_first else None
-    if stage is not None:
-        config.pipeline.datamanager.dataparser.prior_calibration = out / "lidar_first" / "calibration.json"
-        model.camera_optimizer.frozen_sensors = tuple(stage["sensors"])
+    cameras = run_camera_registration(cfg, rig, stage, truth, out) if cfg.lidar_first and cfg.camera_registration else None
+    held: dict = {}
+    if stage is not None or cameras is not None:
+        held = {**(stage or {}).get("sensors", {}), **{n: e for n, e in (cameras or {}).get("sensors", {}).items() if not e["kept_prior"]}}
+        config.pipeline.datamanager.dataparser.prior_calibration = out / ("camera_registration" if cameras else "lidar_first") / "calibration.json"
+        model.camera_optimizer.frozen_sensors = tuple(n for n in held if cfg.camera_refinement is False or rig.sensors[n].type == "lidar")
         if cfg.registration_sensors is not None:
             model.registration_sensors = cfg.registration_sensors
         if cfg.lidar_scene:
@@ -251,7 +260,7 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         if not cfg.resume:
             history = config.get_base_dir() / HISTORY_FILE
             history.unlink(missing_ok=True)
-            for step, rows in stage_history_rows(stage, truth):
+            for step, rows in stage_history_rows({"sensors": held}, truth):
                 append_history(history, step, rows)
 
     seed_everything(cfg.seed)
@@ -295,9 +304,13 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     for name, spread in moving.items():
         print(f"WARNING: {name} is still moving over its last estimates ({spread}); run longer or check the data")
     summary["still_moving"] = moving
+    if cameras is not None:
+        summary["camera_registration"] = {n: {k: e[k] for k in ("wall_s", "kept_prior", "loss_prior", "loss_estimate") + (("errors_after",) if truth else ())}
+                                          for n, e in cameras["sensors"].items()}
     from moisst_ns.uncertainty import UncertaintyConfig, assess_run
 
-    final, summary["trust"], lines = assess_run(trainer.pipeline, estimate, stage, drive, moving, summary.get("hit_bounds", {}),
+    frozen = set(model.camera_optimizer.frozen_sensors)
+    final, summary["trust"], lines = assess_run(trainer.pipeline, estimate, {"sensors": {n: e for n, e in held.items() if n in frozen}} if frozen else None, drive, moving, summary.get("hit_bounds", {}),
                                                 UncertaintyConfig(seed=cfg.seed) if cfg.uncertainty else None)
     summary["drive_observability"] = drive_json(drive)
     print("\n".join(lines))
@@ -345,3 +358,30 @@ def run_lidar_first(cfg: CalibrateConfig, rig, prior, truth, out: Path) -> Optio
     return stage
 
 
+
+
+def run_camera_registration(cfg: CalibrateConfig, rig, lidar_stage: Optional[dict], truth, out: Path) -> Optional[dict]:
+    """The camera-registration stage into ``out/camera_registration`` when the rig has a LiDAR (calibrated by the
+    LiDAR-first stage, or the reference) and a non-reference camera; its summary, or None."""
+    from moisst_ns.rig.format import Calibration, load_calibration
+    from moisst_ns.stages.camera_registration import CameraRegistrationConfig, camera_sensors, register_cameras
+    from moisst_ns.stages.camera_report import write_stage_outputs
+    from moisst_ns.stages.lidar_map import CameraStageError
+
+    if not camera_sensors(rig) or not any(s.type == "lidar" for s in rig.sensors.values()):
+        return None
+    start = load_calibration(out / "lidar_first" / "calibration.json") if lidar_stage is not None else Calibration.from_rig(rig)
+    config = CameraRegistrationConfig(max_time_offset=cfg.max_time_offset if cfg.max_time_offset is not None else 0.3, seed=cfg.seed,
+                                      estimate_extrinsic=cfg.extrinsics, estimate_time_offset=cfg.time_offsets)
+    try:
+        result = register_cameras(rig, start, config)
+    except CameraStageError as err:
+        raise CalibrationError(f"{err} (--no-camera-registration skips the camera-registration stage)") from None
+    stage = write_stage_outputs(result, config, start, truth, out / "camera_registration")
+    for name, entry in stage["sensors"].items():
+        line = f"camera registration: {name} in {entry['wall_s']:.1f} s"
+        if truth is not None:
+            e = entry["errors_after"]
+            line += f": {e['translation_cm']:.2f} cm / {e['rotation_deg']:.3f} deg / {e['time_ms']:.2f} ms from the truth"
+        print(line + (" (held-back cost not lower than at the prior: prior kept, the NeRF calibrates it)" if entry["kept_prior"] else ""))
+    return stage

@@ -187,7 +187,8 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
     Args:
         pipeline: the trained pipeline.
         estimate: the NeRF's estimate (``Calibration``).
-        stage: the LiDAR-first stage's summary (its sensors' formal sigma and weak parameters), or None.
+        stage: ``{"sensors": ...}`` of the sensors the NeRF held at a stage's estimate (LiDAR-first: formal sigma
+            and weak parameters; camera registration: sigma and held-back costs), or None.
         drive: ``stages.drive_observability.analyse_rig_drive`` results.
         moving: sensors still moving (name -> spread).
         hit: sensors that ran into a bound (name -> bounds).
@@ -216,8 +217,12 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         if name in measured:
             m = measured[name]
             sigma, loss_est, loss_prior, source = m.sigma, m.loss_estimate, m.loss_prior, "held-back pixels"
-        elif stage is not None and name in stage["sensors"]:
+        elif stage is not None and name in stage["sensors"] and "observability" in stage["sensors"][name]:
             sigma, source = [d["sigma"] for d in stage["sensors"][name]["observability"]], "LiDAR-first formal"
+        elif stage is not None and name in stage["sensors"]:  # a camera held at its camera-registration estimate
+            entry = stage["sensors"][name]
+            sigma = [np.inf if v is None else float(v) for v in entry["sigma"]]
+            loss_est, loss_prior, source = entry["loss_estimate"], entry["loss_prior"], "camera-registration pairs"
         weak = list(drive_weak.get(name, []))
         if stage is not None and name in stage["sensors"]:
             weak += stage["sensors"][name]["weak"]

@@ -1,0 +1,440 @@
+"""Cameras against the calibrated LiDAR map: each camera's extrinsic and time offset from photometric consistency
+over LiDAR-measured, metric geometry (no NeRF).
+
+After the LiDAR-first stage the scans, placed by paper eq. 1-2 at the calibrated LiDAR extrinsics, are a metric map
+of the static scene (``lidar_map.lidar_map``). A map point ``x`` seen by camera ``c`` in its frame ``k`` (own-clock
+stamp ``s_k``) projects to ``u = pi_c(world_T_c(s_k)^-1 x)`` with ``world_T_c(s) = T_r(s + delta_c) @ ref_T_c``
+(eq. 2, the same pose every NeRF ray of that camera is generated from, eq. 10-12). Its grey level there must equal
+its grey level in the reference camera's images (poses known) and in the camera's own frames some metres of
+driving away (poses depending on the same unknowns: this is what registers a camera that the reference never
+overlaps). Residuals ``I_{c,k}(u) - I_B(u_B)`` over such pairs of observations, on images standardised per frame,
+robust (Huber), solved for the 7 unknowns of eq. 12 (``R = R_prior Exp(w)``, ``t = t_prior + v``,
+``delta = delta_prior + d``) with ``scipy.optimize.least_squares``. The Jacobian is the image gradient times the
+projection's derivative (forward-mode autodiff, ``torch.func.jacfwd``, through eq. 1-2). Coarse to fine over an
+image pyramid (as INF: 8 -> 4 -> 2 -> 1) for the basin; occlusions by a z-buffer of the map in every image. This is
+direct image alignment against known depth, as in direct visual odometry, with the LiDAR giving the depth.
+
+A camera whose held-back photometric cost (pairs not used in the fit) is not lower at the estimate than at its
+prior keeps its prior (``CameraResult.kept_prior``). Nothing here imports nerfstudio.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from jaxtyping import Float, Int
+from scipy.optimize import least_squares
+
+from moisst_ns.rig.format import Calibration, Rig
+from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, sensor_pose
+from moisst_ns.stages.lidar_map import (CameraStageError, ImageStack, PinholeModel, bilinear, lidar_map, load_pyramid, project,
+                                        pyramid_factors, visible, world_to_camera)
+from moisst_ns.stages.uncertainty_math import least_squares_sigma
+
+PARAMETERS = ("rx", "ry", "rz", "x", "y", "z", "time_offset")
+
+
+@dataclass
+class CameraRegistrationConfig:
+    """Settings of the camera-registration stage (image sizes and drives enter only through the pyramid rule)."""
+
+    map_voxel: float = 0.05
+    """Voxel size of the LiDAR map, metres."""
+    min_range: float = 2.0
+    """LiDAR points closer than this to their sensor are left out of the map (the vehicle itself), metres."""
+    max_depth: float = 40.0
+    """Map points farther than this from a camera are not used (a pixel covers too much there), metres."""
+    points_per_frame: int = 600
+    """Map points sampled per camera frame and outer iteration at full resolution (weighted by the image gradient);
+    a level ``f`` times smaller samples ``f`` times fewer (it has ``f^2`` times fewer pixels)."""
+    min_width: int = 40
+    """Coarsest pyramid level: halve the images while they stay at least this many pixels wide."""
+    outer_iterations: int = 3
+    """At most this many outer iterations per pyramid level (visibility, samples and partners re-chosen at the current
+    estimate); a level ends earlier once an iteration moves the estimate by less than a tenth of a pixel."""
+    max_evaluations: int = 20
+    """Residual evaluations per inner least-squares solve."""
+    huber: float = 0.5
+    """Huber scale of the residuals, in standard deviations of the image's grey level."""
+    zbuffer_cell: int = 4
+    """Z-buffer block size, full-resolution pixels."""
+    occlusion_margin_m: float = 0.3
+    """A point counts as visible within this depth of the nearest map point in its block, metres..."""
+    occlusion_margin_fraction: float = 0.03
+    """...plus this fraction of its depth."""
+    own_baseline: float = 1.5
+    """A camera's own partner frame is the first at least this far (driving distance) from the frame, metres."""
+    held_back_points: int = 300
+    """Map points per frame of the held-back check (estimate vs prior), drawn afresh after the fit."""
+    max_translation: float = 2.0
+    """Bound on the translation correction per axis, metres."""
+    max_rotation_deg: float = 30.0
+    """Bound on the rotation correction per axis, degrees."""
+    max_time_offset: float = 0.3
+    """Bound on the time-offset correction, seconds."""
+    estimate_extrinsic: bool = True
+    """Estimate the extrinsic (else it stays at the prior)."""
+    estimate_time_offset: bool = True
+    """Estimate the time offset (else it stays at the prior)."""
+    seed: int = 0
+    """Seed of the point samples."""
+
+
+@dataclass
+class CameraFrames:
+    """One camera's frames: own-clock stamps (seconds since the trajectory's ``t0``) and the image pyramid."""
+
+    sensor: str
+    stamps: Float[np.ndarray, "frames"]
+    levels: Dict[int, ImageStack]
+    model: PinholeModel
+    """Full-resolution intrinsics."""
+
+
+def load_camera(rig: Rig, sensor: str, factors: Sequence[int]) -> CameraFrames:
+    """A camera's frames sorted by stamp, as grey pyramids."""
+    frames = sorted(rig.frames_of(sensor), key=lambda f: f.timestamp)
+    if len(frames) < 2:
+        raise CameraStageError(f"{rig.root / 'rig.json'}: frames: camera {sensor} has {len(frames)} frame(s); at least 2 are needed")
+    stamps = np.array([f.timestamp for f in frames]) - float(rig.trajectory_stamps[0])
+    return CameraFrames(sensor, stamps, load_pyramid(rig, sensor, [f.file_path for f in frames], factors),
+                        PinholeModel.of(rig.sensors[sensor].intrinsics))
+
+
+class CameraModel:
+    """``theta -> pixel`` of map points in a camera's frames (eq. 1, 2, 12), and its Jacobian (forward mode)."""
+
+    def __init__(self, traj: ReferenceTrajectory, prior: Float[np.ndarray, "4 4"], prior_offset: float,
+                 stamps: Float[np.ndarray, "frames"]):
+        self.traj, self.prior_offset = traj, prior_offset
+        self.prior = torch.from_numpy(np.asarray(prior, dtype=np.float64))
+        self.stamps = torch.from_numpy(np.asarray(stamps, dtype=np.float64))
+
+    def poses(self, theta: Float[torch.Tensor, "7"]) -> Float[torch.Tensor, "frames 4 4"]:
+        """``world_T_c`` of every frame: ``T_r(s_k + delta_prior + d) @ ref_T_c(w, v)``."""
+        ext = calibrated_extrinsic(self.prior, theta[:3], theta[3:6])
+        return sensor_pose(self.traj(self.stamps + self.prior_offset + theta[6]), ext)
+
+    def pixels(self, theta: Float[np.ndarray, "7"], model: PinholeModel, points: Float[np.ndarray, "num 3"],
+               frame: Int[np.ndarray, "num"], jacobian: bool) -> Tuple[Float[np.ndarray, "num 2"], Optional[Float[np.ndarray, "num 2 7"]]]:
+        """Pixels of ``points`` in frames ``frame`` at correction ``theta`` (and ``d pixel / d theta``)."""
+        pts, idx = torch.from_numpy(points), torch.from_numpy(frame)
+
+        def uv(th):
+            return project(model, world_to_camera(self.poses(th)[idx], pts))[0]
+
+        th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
+        with torch.no_grad():
+            value = uv(th).numpy()
+            return value, (torch.func.jacfwd(uv)(th).numpy() if jacobian else None)
+
+
+@dataclass
+class PairSet:
+    """Pairs of observations of map points: camera ``c``'s frame ``frame_a`` against a partner observation."""
+
+    points: Float[np.ndarray, "rows 3"]
+    frame_a: Int[np.ndarray, "rows"]
+    own: np.ndarray
+    """(rows,) bool: the partner is another frame of the same camera (else a reference-camera frame)."""
+    frame_b: Int[np.ndarray, "rows"]
+    """The partner frame (the camera's own frame index, or the reference camera's frame index)."""
+    value_b: Float[np.ndarray, "rows"]
+    """Grey level of reference partners (fixed; 0 for own partners)."""
+
+
+class Registration:
+    """The photometric problem of one camera: pair selection, residuals, Jacobian and solve."""
+
+    def __init__(self, traj: ReferenceTrajectory, world: np.ndarray, camera: CameraFrames, reference: Optional[CameraFrames],
+                 prior: Calibration, config: CameraRegistrationConfig):
+        """``reference``: the reference camera's frames (None when the reference sensor is a LiDAR: own pairs only)."""
+        self.world, self.camera, self.reference, self.config = world, camera, reference, config
+        name = camera.sensor
+        self.model = CameraModel(traj, np.asarray(prior.T_ref_sensor[name]), float(prior.time_offset[name]), camera.stamps)
+        if reference is not None:
+            ref_name = reference.sensor
+            self.ref_model = CameraModel(traj, np.asarray(prior.T_ref_sensor[ref_name]), float(prior.time_offset[ref_name]), reference.stamps)
+            ref_poses = self.ref_model.poses(torch.zeros(7, dtype=torch.float64)).numpy()
+            self.ref_visible = np.stack([self._visible(ref_poses[j], reference.model) for j in range(len(reference.stamps))])
+        self.rng = np.random.default_rng(config.seed)
+
+    # -- visibility -------------------------------------------------------------------------------------------
+    def _visible(self, pose: np.ndarray, model: PinholeModel) -> np.ndarray:
+        """(map points,) bool: which map points a frame at ``pose`` sees (z-buffer)."""
+        near = np.linalg.norm(self.world - pose[:3, 3], axis=1) < self.config.max_depth
+        index = np.flatnonzero(near)
+        cam = (self.world[index] - pose[:3, 3]) @ pose[:3, :3]
+        uv, z = project(model, torch.from_numpy(cam))
+        uv, z = uv.numpy(), z.numpy()
+        c = self.config
+        ok = visible(uv, z, model, c.zbuffer_cell, c.occlusion_margin_m, c.occlusion_margin_fraction, c.max_depth)
+        mask = np.zeros(len(self.world), dtype=bool)
+        mask[index[ok]] = True
+        return mask
+
+    def pairs(self, theta: np.ndarray, factor: int, per_frame: int) -> PairSet:
+        """Sample map points visible in every frame of the camera at ``theta`` and give each its partners."""
+        cam, ref, c = self.camera, self.reference, self.config
+        poses = self.model.poses(torch.from_numpy(theta)).numpy()
+        seen_by = np.stack([self._visible(poses[k], cam.model) for k in range(len(cam.stamps))])
+        travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))]
+        stack = cam.levels[factor]
+        rows = {"points": [], "frame_a": [], "own": [], "frame_b": [], "value_b": []}
+        for k in range(len(cam.stamps)):
+            candidates = np.flatnonzero(seen_by[k])
+            if len(candidates) == 0:
+                continue
+            uv, _ = self.model.pixels(theta, stack.model, self.world[candidates], np.full(len(candidates), k), jacobian=False)
+            _, grad, ok = bilinear(stack, np.full(len(candidates), k), uv)
+            weight = np.linalg.norm(grad, axis=1) * ok
+            if weight.sum() <= 0:
+                continue
+            take = self.rng.choice(len(candidates), size=min(per_frame, int((weight > 0).sum())), replace=False, p=weight / weight.sum())
+            chosen = candidates[take]
+            # reference partner: the reference frame nearest in time that sees the point
+            pending = np.full(len(chosen), ref is not None)
+            for j in (np.argsort(np.abs(ref.stamps - cam.stamps[k])) if ref is not None else []):
+                if not pending.any():
+                    break
+                seen = self.ref_visible[j, chosen] & pending
+                if not seen.any():
+                    continue
+                ref_stack = ref.levels[factor]
+                uvb, _ = self.ref_model.pixels(np.zeros(7), ref_stack.model, self.world[chosen[seen]], np.full(int(seen.sum()), j), False)
+                value, _, okb = bilinear(ref_stack, np.full(int(seen.sum()), j), uvb)
+                hit = np.flatnonzero(seen)[okb]
+                for key, val in (("points", chosen[hit]), ("frame_a", np.full(len(hit), k)), ("own", np.zeros(len(hit), bool)),
+                                 ("frame_b", np.full(len(hit), j)), ("value_b", value[okb])):
+                    rows[key].append(val)
+                pending[hit] = False
+            # own partner: the nearest frame at least own_baseline of driving away (both sides when possible)
+            for partner in (self._partner(travelled, k, +1), self._partner(travelled, k, -1)):
+                if partner is None:
+                    continue
+                seen = seen_by[partner, chosen]
+                for key, val in (("points", chosen[seen]), ("frame_a", np.full(int(seen.sum()), k)), ("own", np.ones(int(seen.sum()), bool)),
+                                 ("frame_b", np.full(int(seen.sum()), partner)), ("value_b", np.zeros(int(seen.sum())))):
+                    rows[key].append(val)
+        if not rows["points"]:
+            return PairSet(np.zeros((0, 3)), *(np.zeros(0, dtype=t) for t in (np.int64, bool, np.int64, np.float64)))
+        cat = {k: np.concatenate(v) for k, v in rows.items()}
+        return PairSet(self.world[cat["points"]], cat["frame_a"], cat["own"], cat["frame_b"], cat["value_b"])
+
+    def _partner(self, travelled: np.ndarray, k: int, direction: int) -> Optional[int]:
+        far = np.flatnonzero(np.abs(travelled - travelled[k]) >= self.config.own_baseline)
+        far = far[far > k] if direction > 0 else far[far < k]
+        if len(far) == 0:
+            return None
+        return int(far.min() if direction > 0 else far.max())
+
+    # -- residuals --------------------------------------------------------------------------------------------
+    def residuals(self, theta: np.ndarray, pairs: PairSet, factor: int, jacobian: bool):
+        """``I_c(u_a) - I_b(u_b)`` per pair (0 where an observation leaves the image) and ``d r / d theta``."""
+        stack = self.camera.levels[factor]
+        uv_a, ju_a = self.model.pixels(theta, stack.model, pairs.points, pairs.frame_a, jacobian)
+        value_a, grad_a, ok = bilinear(stack, pairs.frame_a, uv_a)
+        value_b = pairs.value_b.copy()
+        jac = np.einsum("nc,ncp->np", grad_a, ju_a) if jacobian else None
+        own = np.flatnonzero(pairs.own)
+        if len(own):
+            uv_b, ju_b = self.model.pixels(theta, stack.model, pairs.points[own], pairs.frame_b[own], jacobian)
+            vb, grad_b, okb = bilinear(stack, pairs.frame_b[own], uv_b)
+            value_b[own] = vb
+            ok[own] &= okb
+            if jacobian:
+                jac[own] -= np.einsum("nc,ncp->np", grad_b, ju_b)
+        res = np.where(ok, value_a - value_b, 0.0)
+        if jacobian:
+            jac[~ok] = 0.0
+        return res, jac, ok
+
+
+def huber_costs(residuals: np.ndarray, scale: float) -> np.ndarray:
+    """Huber cost of each residual (``0.5 r^2`` inside ``scale``, linear beyond)."""
+    a = np.abs(residuals)
+    return np.where(a <= scale, 0.5 * a * a, scale * (a - 0.5 * scale))
+
+
+def robust_cost(residuals: np.ndarray, scale: float) -> float:
+    """Mean Huber cost of residuals (nan for none)."""
+    return float(np.mean(huber_costs(residuals, scale))) if len(residuals) else float("nan")
+
+
+@dataclass
+class CameraResult:
+    """One camera's registration."""
+
+    sensor: str
+    prior: Float[np.ndarray, "4 4"]
+    prior_offset: float
+    estimate: Float[np.ndarray, "4 4"]
+    """``ref_T_c`` (the prior again when ``kept_prior``)."""
+    time_offset: float
+    sigma: List[float]
+    """Standard deviations of the 7 corrections (rad, rad, rad, m, m, m, s): max of classical and frame-clustered
+    (``uncertainty_math.least_squares_sigma``), from the finest level's last solve; inf where unconstrained."""
+    cost_prior: float
+    """Held-back mean Huber cost at the prior (fresh samples at the finest level: ``held_back_check``)."""
+    cost_estimate: float
+    """The same pairs at the estimate."""
+    kept_prior: bool
+    """The held-back cost was not significantly lower at the estimate: the prior is kept."""
+    history: List[Dict[str, object]] = field(default_factory=list)
+    wall_s: float = 0.0
+
+
+def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
+    pose = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(theta[:3]), torch.from_numpy(theta[3:6]))
+    return pose.numpy(), prior_offset + float(theta[6])
+
+
+def _pixel_motion(problem: Registration, theta: np.ndarray, step: np.ndarray, active: np.ndarray, pairs: PairSet, factor: int) -> float:
+    """RMS motion (this level's pixels) of a sample of the pairs' projections caused by the last ``step``."""
+    if not len(step):
+        return 0.0
+    sample = slice(0, len(pairs.points), max(1, len(pairs.points) // 2000))
+    before = theta.copy()
+    before[active] -= step
+    model = problem.camera.levels[factor].model
+    a, _ = problem.model.pixels(theta, model, pairs.points[sample], pairs.frame_a[sample], False)
+    b, _ = problem.model.pixels(before, model, pairs.points[sample], pairs.frame_a[sample], False)
+    return float(np.sqrt(np.nanmean(np.sum((a - b) ** 2, axis=1))))
+
+
+def held_back_check(problem: Registration, theta: np.ndarray, factor: int, config: CameraRegistrationConfig) -> Tuple[float, float, bool]:
+    """Is the estimate better than the prior on pairs the fit did not use?
+
+    Fresh pairs are drawn at the estimate and at the prior alike (each draw favours the pose it was drawn at: the
+    samples sit where that pose sees texture), both evaluated at both poses. The estimate is better when the
+    per-frame mean of ``cost(prior) - cost(estimate)`` is positive at three standard errors over the frames.
+
+    Returns:
+        (mean Huber cost at the prior, at the estimate, whether the estimate is significantly better).
+    """
+    draws = [problem.pairs(t, factor, config.held_back_points) for t in (theta, np.zeros(7))]
+    check = PairSet(*(np.concatenate([getattr(d, f) for d in draws]) for f in ("points", "frame_a", "own", "frame_b", "value_b")))
+    r_est, _, ok_est = problem.residuals(theta, check, factor, jacobian=False)
+    r_pri, _, ok_pri = problem.residuals(np.zeros(7), check, factor, jacobian=False)
+    both = ok_est & ok_pri
+    if not both.any():
+        return float("nan"), float("nan"), False
+    gain = huber_costs(r_pri[both], config.huber) - huber_costs(r_est[both], config.huber)
+    frames = check.frame_a[both]
+    per_frame = np.array([gain[frames == f].mean() for f in np.unique(frames)])
+    significant = len(per_frame) >= 2 and per_frame.mean() > 3.0 * per_frame.std(ddof=1) / np.sqrt(len(per_frame))
+    return robust_cost(r_pri[both], config.huber), robust_cost(r_est[both], config.huber), bool(significant)
+
+
+def register_camera(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None] = print) -> CameraResult:
+    """Coarse-to-fine photometric registration of one camera against the map (see the module docstring)."""
+    start = time.perf_counter()
+    name = problem.camera.sensor
+    active = np.array([config.estimate_extrinsic] * 6 + [config.estimate_time_offset])
+    bound = np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset][active]
+    scale = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005][active]
+    theta, history = np.zeros(7), []
+    factors = sorted(problem.camera.levels, reverse=True)
+    last = None
+    for factor in factors:
+        for outer in range(config.outer_iterations):
+            pairs = problem.pairs(theta, factor, max(config.points_per_frame // factor, 200))
+            if len(pairs.points) < 50:
+                raise CameraStageError(f"sensors.{name}: only {len(pairs.points)} observation pairs with the LiDAR map at the prior; "
+                                       "the camera does not see the mapped scene")
+            cache: Dict[Tuple[bytes, bool], tuple] = {}
+
+            def full(x, jacobian=False):
+                th = theta.copy()
+                th[active] = x
+                key = (th.tobytes(), jacobian)
+                if key not in cache:  # least_squares asks for the residuals of every trial step, the Jacobian of accepted ones
+                    cache.clear()
+                    cache[key] = problem.residuals(th, pairs, factor, jacobian=jacobian)
+                return cache[key]
+
+            solution = least_squares(lambda x: full(x)[0], theta[active], jac=lambda x: full(x, True)[1][:, active], method="trf",
+                                     loss="huber", f_scale=config.huber, x_scale=scale, max_nfev=config.max_evaluations,
+                                     bounds=(-bound, bound))
+            step = solution.x - theta[active]
+            theta[active] = solution.x
+            res, jac, ok = full(solution.x, True)
+            last = (res, jac, ok, pairs)
+            pose, offset = _corrected(problem.model.prior.numpy(), problem.model.prior_offset, theta)
+            history.append({"level": factor, "iteration": outer, "pairs": int(ok.sum()), "cost": robust_cost(res[ok], config.huber),
+                            "T_ref_sensor": pose.tolist(), "time_offset": offset, "elapsed_s": time.perf_counter() - start})
+            log(f"[camera-registration] {name}: 1/{factor} resolution, iteration {outer}: {int(ok.sum())} pairs, "
+                f"cost {history[-1]['cost']:.4f}, {solution.nfev} evaluations")
+            if _pixel_motion(problem, theta, step, active, pairs, factor) < 0.1:
+                break
+    res, jac, ok, _ = last
+    sig = np.full(7, 0.0)
+    if active.any():
+        weights = np.sqrt(np.minimum(1.0, config.huber / np.maximum(np.abs(res[ok]), 1e-12)))
+        frames = last[3].frame_a[ok]
+        sig[active] = least_squares_sigma(jac[ok][:, active] * weights[:, None], res[ok] * weights, frames).sigma
+    cost_pri, cost_est, better = held_back_check(problem, theta, factors[-1], config)
+    kept = not better
+    prior = problem.model.prior.numpy()
+    pose, offset = (prior, problem.model.prior_offset) if kept else _corrected(prior, problem.model.prior_offset, theta)
+    return CameraResult(name, prior, problem.model.prior_offset, pose, offset, sig.tolist(), cost_pri, cost_est, kept, history,
+                        time.perf_counter() - start)
+
+
+@dataclass
+class CameraStageResult:
+    """Every registered camera, and the full calibration (cameras registered, every other sensor as given)."""
+
+    calibration: Calibration
+    cameras: Dict[str, CameraResult]
+    map_points: int
+
+
+def camera_sensors(rig: Rig) -> List[str]:
+    """The rig's non-reference cameras (the ones this stage registers)."""
+    return [n for n, s in rig.sensors.items() if s.type == "camera" and n != rig.reference_sensor]
+
+
+def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrationConfig, sensors: Optional[Sequence[str]] = None,
+                     log: Callable[[str], None] = print) -> CameraStageResult:
+    """Register every non-reference camera against the map of the LiDARs at ``calibration``.
+
+    Args:
+        rig: the dataset; its reference sensor must be a camera (its images carry the colours) or a LiDAR.
+        calibration: the calibration to start from (the LiDAR-first estimate: LiDARs calibrated, cameras at priors).
+        config: settings.
+        sensors: the cameras to register (default: every non-reference camera).
+        log: where progress lines go.
+
+    Returns:
+        The result; ``calibration`` holds the registered cameras (or their priors where kept).
+
+    Raises:
+        CameraStageError: no LiDAR, an unreadable image or scan, or a camera that does not see the map.
+    """
+    cameras = camera_sensors(rig)
+    if not cameras:
+        raise CameraStageError(f"{rig.root / 'rig.json'}: sensors: no camera other than the reference sensor to register")
+    for name in sensors or []:
+        if name not in cameras:
+            raise CameraStageError(f"{rig.root / 'rig.json'}: sensors.{name}: not a non-reference camera of this rig (cameras: {cameras})")
+    cameras = list(sensors) if sensors else cameras
+    world = lidar_map(rig, calibration, config.map_voxel, config.min_range, log)
+    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    widths = [int(rig.sensors[n].intrinsics["w"]) for n in cameras]
+    reference_name = rig.reference_sensor if rig.sensors[rig.reference_sensor].type == "camera" else None
+    out = Calibration(calibration.reference_sensor, dict(calibration.T_ref_sensor), dict(calibration.time_offset))
+    results = {}
+    for name in cameras:
+        factors = pyramid_factors(min(widths + ([int(rig.sensors[reference_name].intrinsics["w"])] if reference_name else [])), config.min_width)
+        camera = load_camera(rig, name, factors)
+        reference = load_camera(rig, reference_name, factors) if reference_name else None
+        problem = Registration(traj, world, camera, reference, calibration, config)
+        results[name] = register_camera(problem, config, log)
+        r = results[name]
+        out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
+    return CameraStageResult(out, results, len(world))

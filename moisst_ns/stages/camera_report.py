@@ -1,0 +1,71 @@
+"""What the camera-registration stage leaves in a run folder: ``calibration.json``, ``camera_registration.json`` and
+``camera_registration.md``. No nerfstudio import."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from moisst_ns.rig.calibration import calibration_report_errors
+from moisst_ns.rig.format import Calibration
+from moisst_ns.stages.camera_registration import CameraRegistrationConfig, CameraStageResult
+from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS
+
+REPORT_JSON = "camera_registration.json"
+REPORT_MD = "camera_registration.md"
+UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
+
+
+def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, start: Calibration,
+                  truth: Optional[Calibration]) -> dict:
+    """The JSON-ready record of a stage run (``camera_registration.json``).
+
+    ``sigma`` is in the trust order (``x, y, z, roll, pitch, yaw, time_offset``; m, rad, s); a parameter whose sigma
+    exceeds its typical prior error (10 cm, 1 deg, 10 ms) is listed in ``weak``.
+    """
+    before = calibration_report_errors(start, truth) if truth else {}
+    after = calibration_report_errors(result.calibration, truth) if truth else {}
+    sensors = {}
+    for name, r in result.cameras.items():
+        sigma = [float(r.sigma[j]) for j in JACOBIAN_ORDER]
+        entry = {"T_ref_sensor": np.asarray(r.estimate).tolist(), "time_offset": r.time_offset, "prior_T_ref_sensor": np.asarray(r.prior).tolist(),
+                 "prior_time_offset": r.prior_offset, "sigma": [s if np.isfinite(s) else None for s in sigma],
+                 "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step],
+                 "loss_estimate": r.cost_estimate, "loss_prior": r.cost_prior, "kept_prior": r.kept_prior,
+                 "wall_s": r.wall_s, "history": r.history}
+        if truth:
+            entry["errors_before"], entry["errors_after"] = before[name], after[name]
+        sensors[name] = entry
+    return {"stage": "camera-registration", "config": asdict(config), "map_points": result.map_points, "sensors": sensors}
+
+
+def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationConfig, start: Calibration, truth: Optional[Calibration],
+                        out: Path) -> dict:
+    """Write ``calibration.json``, ``camera_registration.json`` and ``camera_registration.md`` into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    result.calibration.write(out / "calibration.json")
+    summary = stage_summary(result, config, start, truth)
+    (out / REPORT_JSON).write_text(json.dumps(summary, indent=1) + "\n")
+    md = ["# Camera registration against the LiDAR map", "",
+          f"Photometric consistency of {result.map_points} LiDAR map points between each camera's frames and the reference "
+          "camera's (module `moisst_ns.stages.camera_registration`). Held-back cost: mean Huber cost of fresh pairs at the "
+          "estimate vs at the prior; a camera whose estimate is not better keeps its prior.", ""]
+    for name, s in summary["sensors"].items():
+        md += [f"## {name}", "", f"{s['wall_s']:.1f} s; held-back cost {s['loss_prior']:.4f} at the prior, {s['loss_estimate']:.4f} at the "
+               f"estimate{' (prior kept)' if s['kept_prior'] else ''}.", "",
+               "| | " + " | ".join(PARAMETERS) + " |", "|---|" + "---|" * len(PARAMETERS),
+               "| sigma | " + " | ".join("inf" if v is None else f"{v * u:.3g} {unit}" for v, (u, unit) in zip(s["sigma"], UNITS)) + " |", ""]
+        if truth:
+            b, a = s["errors_before"], s["errors_after"]
+            md += ["| | translation (cm) | rotation (deg) | time (ms) |", "|---|---|---|---|",
+                   f"| start | {b['translation_cm']:.2f} | {b['rotation_deg']:.3f} | {b['time_ms']:.2f} |",
+                   f"| estimate | {a['translation_cm']:.2f} | {a['rotation_deg']:.4f} | {a['time_ms']:.3f} |", ""]
+        md += ["| level | iteration | pairs | cost |", "|---|---|---|---|"]
+        md += [f"| 1/{h['level']} | {h['iteration']} | {h['pairs']} | {h['cost']:.4f} |" for h in s["history"]]
+        md += [""]
+    (out / REPORT_MD).write_text("\n".join(md))
+    return summary

@@ -1,0 +1,218 @@
+"""The calibrated LiDAR map and what cameras see of it: projection (with the rig format's OPENCV distortion),
+z-buffer visibility and image pyramids. Support of ``moisst_ns.stages.camera_registration``; no nerfstudio import.
+
+Pixel convention (the rig format's and nerfstudio's): continuous coordinates from the image's top-left corner, the
+centre of pixel column ``i`` at ``i + 0.5``; a pyramid level ``l`` (``2^l`` times smaller, ``cv2.pyrDown``) maps
+``u`` to ``u / 2^l`` with the same convention.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Dict, List, Sequence, Tuple
+
+import numpy as np
+import open3d as o3d
+import torch
+from jaxtyping import Bool, Float, Int
+from torch import Tensor
+
+from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
+from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points
+
+
+class CameraStageError(ValueError):
+    """The camera-registration stage cannot run on this input; the message is one line naming the file and field."""
+
+
+def lidar_map(rig: Rig, calibration: Calibration, voxel: float, min_range: float,
+              log: Callable[[str], None] = print) -> Float[np.ndarray, "num 3"]:
+    """Every scan of every LiDAR placed in the world by paper eq. 1-2 at ``calibration``, on a voxel grid.
+
+    Args:
+        rig: the dataset.
+        calibration: extrinsics and time offsets of the LiDARs (the LiDAR-first estimate; the reference LiDAR at
+            the identity).
+        voxel: voxel size of the map, metres (one point per voxel).
+        min_range: points closer to their LiDAR are dropped (returns from the vehicle), metres.
+        log: where progress lines go.
+
+    Returns:
+        World points, metres (float64).
+
+    Raises:
+        CameraStageError: the rig has no LiDAR or a scan cannot be read.
+    """
+    traj = Trajectory.from_rig(rig)
+    t0 = float(rig.trajectory_stamps[0])
+    lidars = [n for n, s in rig.sensors.items() if s.type == "lidar"]
+    if not lidars:
+        raise CameraStageError(f"{rig.root / 'rig.json'}: sensors: no LiDAR to build the map from")
+    chunks = []
+    for name in lidars:
+        T = np.asarray(calibration.T_ref_sensor[name], dtype=np.float64)
+        ext = Extrinsic(T[:3, :3], T[:3, 3], float(calibration.time_offset[name]))
+        for frame in rig.frames_of(name):
+            try:
+                points, offsets, _ = load_lidar_scan(rig.root / frame.file_path, min_range=min_range)
+            except RigFormatError as err:
+                raise CameraStageError(str(err)) from None
+            times = frame.timestamp - t0 + (offsets if offsets is not None else np.zeros(len(points)))
+            chunks.append(place_points(traj, ext, points.astype(np.float64), times))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(chunks)))
+    world = np.asarray(cloud.voxel_down_sample(voxel).points)
+    log(f"[camera-registration] LiDAR map: {len(world)} points ({voxel * 100:.0f} cm voxels) from {len(chunks)} scans of {', '.join(lidars)}")
+    return world
+
+
+@dataclass
+class PinholeModel:
+    """A camera's intrinsics at one pyramid level (rig format names; distortion as nerfstudio's OPENCV model)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    distortion: Tuple[float, float, float, float, float, float] = (0.0,) * 6
+    """``k1, k2, k3, k4, p1, p2``."""
+
+    @classmethod
+    def of(cls, intrinsics: Dict[str, object], factor: int = 1) -> "PinholeModel":
+        """The model of rig.json ``intrinsics`` at a level ``factor`` times smaller."""
+        dist = tuple(float(intrinsics.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
+        return cls(float(intrinsics["fl_x"]) / factor, float(intrinsics["fl_y"]) / factor, float(intrinsics["cx"]) / factor,
+                   float(intrinsics["cy"]) / factor, int(intrinsics["w"]) // factor, int(intrinsics["h"]) // factor, dist)
+
+
+def project(model: PinholeModel, cam: Float[Tensor, "num 3"]) -> Tuple[Float[Tensor, "num 2"], Float[Tensor, "num"]]:
+    """Pixel coordinates and depth of points in a camera's frame (OpenCV axes: x right, y down, z forward).
+
+    Args:
+        model: intrinsics.
+        cam: points in the camera frame, metres.
+
+    Returns:
+        (``(u, v)`` pixels, continuous from the top-left corner; depth ``z``, metres). Points with ``z <= 0`` get
+        finite but meaningless pixels: mask them with the depth.
+    """
+    z = cam[:, 2]
+    safe = torch.where(z > 1e-6, z, torch.ones_like(z))
+    x, y = cam[:, 0] / safe, cam[:, 1] / safe
+    k1, k2, k3, k4, p1, p2 = model.distortion
+    if any(model.distortion):
+        r = x * x + y * y
+        d = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)))
+        x, y = x * d + 2.0 * p1 * x * y + p2 * (r + 2.0 * x * x), y * d + 2.0 * p2 * x * y + p1 * (r + 2.0 * y * y)
+    return torch.stack([model.fx * x + model.cx, model.fy * y + model.cy], dim=-1), z
+
+
+def world_to_camera(world_T_cam: Float[Tensor, "num 4 4"], points: Float[Tensor, "num 3"]) -> Float[Tensor, "num 3"]:
+    """``R^T (x - t)`` for each point with its own pose."""
+    return torch.einsum("nji,nj->ni", world_T_cam[:, :3, :3], points - world_T_cam[:, :3, 3])
+
+
+def visible(uv: Float[np.ndarray, "num 2"], depth: Float[np.ndarray, "num"], model: PinholeModel, cell: int,
+            margin_m: float, margin_fraction: float, max_depth: float) -> Bool[np.ndarray, "num"]:
+    """Which of a frame's projected map points are not hidden behind other map points (a z-buffer).
+
+    The nearest depth is kept per ``cell`` x ``cell`` pixel block and spread to the 8 neighbouring blocks (the map
+    is sparse: a background point must not shine through the gaps of a foreground surface); a point is visible
+    when it is within ``margin_m + margin_fraction * depth`` of that nearest depth.
+
+    Args:
+        uv: pixel coordinates (full resolution).
+        depth: camera depths, metres.
+        model: intrinsics (full resolution).
+        cell: z-buffer block size, pixels.
+        margin_m: absolute depth tolerance, metres.
+        margin_fraction: relative depth tolerance.
+        max_depth: points farther than this are not used, metres.
+
+    Returns:
+        Mask of visible points inside the image.
+    """
+    from scipy.ndimage import minimum_filter
+
+    inside = (depth > 0.1) & (depth < max_depth) & (uv[:, 0] >= 0) & (uv[:, 0] < model.width) & (uv[:, 1] >= 0) & (uv[:, 1] < model.height)
+    nx, ny = -(-model.width // cell), -(-model.height // cell)
+    key = np.zeros(len(depth), dtype=np.int64)
+    key[inside] = (uv[inside, 1] // cell).astype(np.int64) * nx + (uv[inside, 0] // cell).astype(np.int64)
+    zmin = np.full(nx * ny, np.inf)
+    np.minimum.at(zmin, key[inside], depth[inside])
+    zmin = minimum_filter(zmin.reshape(ny, nx), size=3, mode="nearest").ravel()
+    return inside & (depth <= zmin[key] + margin_m + margin_fraction * depth)
+
+
+def pyramid_factors(width: int, min_width: int) -> List[int]:
+    """Downsampling factors, coarse to fine, down to 1: halving while the image stays at least ``min_width`` wide."""
+    factors = [1]
+    while width // (factors[-1] * 2) >= min_width:
+        factors.append(factors[-1] * 2)
+    return factors[::-1]
+
+
+@dataclass
+class ImageStack:
+    """One camera's frames at one pyramid level: standardised grey images and their gradients."""
+
+    intensity: Float[np.ndarray, "frames h w"]
+    """Grey level, zero mean and unit standard deviation per image (exposure differences cancel)."""
+    gradient: Float[np.ndarray, "frames 2 h w"]
+    """``d I / d u`` and ``d I / d v``, per pixel of this level."""
+    model: PinholeModel
+
+
+def load_pyramid(rig: Rig, sensor: str, files: Sequence[str], factors: Sequence[int]) -> Dict[int, ImageStack]:
+    """Every frame of a camera as grey images at each factor of ``factors`` (``cv2.pyrDown``, Gaussian 5x5).
+
+    Raises:
+        CameraStageError: an image is missing, unreadable or not of the size rig.json gives.
+    """
+    import cv2
+
+    intr = rig.sensors[sensor].intrinsics
+    levels: Dict[int, List[np.ndarray]] = {f: [] for f in factors}
+    for rel in files:
+        path = rig.root / rel
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+        if image is None:
+            raise CameraStageError(f"{path}: file_path: missing or not an image")
+        if image.shape != (int(intr["h"]), int(intr["w"])):
+            raise CameraStageError(f"{path}: size {image.shape[1]}x{image.shape[0]} is not rig.json's {intr['w']}x{intr['h']} (sensors.{sensor}.intrinsics)")
+        level, factor = image.astype(np.float32) / 255.0, 1
+        while True:
+            if factor in levels:
+                levels[factor].append((level - level.mean()) / max(float(level.std()), 1e-3))
+            if factor >= max(factors):
+                break
+            level, factor = cv2.pyrDown(level), factor * 2
+    stacks = {}
+    for f, images in levels.items():
+        stack = np.stack(images)
+        gy, gx = np.gradient(stack, axis=(1, 2))
+        stacks[f] = ImageStack(stack, np.stack([gx, gy], axis=1).astype(np.float32), PinholeModel.of(intr, f))
+    return stacks
+
+
+def bilinear(stack: ImageStack, frame: Int[np.ndarray, "num"], uv: Float[np.ndarray, "num 2"]) -> Tuple[
+        Float[np.ndarray, "num"], Float[np.ndarray, "num 2"], Bool[np.ndarray, "num"]]:
+    """Intensity and gradient of each point's frame at ``uv`` (this level's pixels), bilinear.
+
+    Returns:
+        (intensity, gradient ``(dI/du, dI/dv)``, inside: the 2x2 neighbourhood is within the image; values of
+        points outside are 0).
+    """
+    _, h, w = stack.intensity.shape
+    x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5
+    ok = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (y >= 0) & (x < w - 1) & (y < h - 1)
+    x, y = np.where(ok, x, 0.0), np.where(ok, y, 0.0)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    weights = [((1 - fx) * (1 - fy), 0, 0), (fx * (1 - fy), 1, 0), ((1 - fx) * fy, 0, 1), (fx * fy, 1, 1)]
+    value, grad = np.zeros(len(x)), np.zeros((len(x), 2))
+    for wgt, dx, dy in weights:
+        value += wgt * stack.intensity[frame, y0 + dy, x0 + dx]
+        grad += wgt[:, None] * stack.gradient[frame, :, y0 + dy, x0 + dx]
+    return np.where(ok, value, 0.0), np.where(ok[:, None], grad, 0.0), ok
