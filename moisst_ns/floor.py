@@ -21,7 +21,8 @@ from typing import Dict, List, Literal, Optional
 
 import numpy as np
 
-from moisst_ns.pipeline import LIDAR_DEPTH_PER_M2, apply_scene_switches, lidar_scene_settings, rig_trainer_config, seed_everything
+from moisst_ns.pipeline import (LIDAR_DEPTH_PER_M2, apply_scene_switches, fixed_calibration_scene, lidar_scene_settings, rig_trainer_config,
+                               seed_everything)
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
 
@@ -216,9 +217,7 @@ def run_floor(cfg: FloorConfig) -> dict:
     # The scene is built at the true calibration, so the phases that protect it from miscalibrated sensors
     # (reference-only warm-up, detached registration, coarse-to-fine) are switched off: the best scene of this budget.
     model.camera_optimizer.mode = "off"
-    model.calibration_warmup_steps, model.reference_only_warmup, model.registration_steps = 0, False, 0
-    model.coarse_to_fine = (0, 0)
-    datamanager.reference_only_steps = datamanager.registration_steps = 0
+    fixed_calibration_scene(config)
     config.save_config()
 
     seed_everything(cfg.seed)

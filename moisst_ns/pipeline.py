@@ -138,6 +138,21 @@ def lidar_scene_settings(config, depth_per_m2: float) -> None:
     datamanager.lidar_reference_view_only = False
 
 
+def fixed_calibration_scene(config) -> None:
+    """Train the scene as the best scene of the budget when no sensor's calibration moves (every non-reference
+    sensor held at a stage's estimate, or ``moisst-floor`` at the truth): the phases that protect the scene from
+    miscalibrated sensors (reference-only warm-up, detached registration, coarse-to-fine) are switched off, so every
+    sensor's rays, the LiDAR's depth included, shape the scene from the start.
+
+    Args:
+        config: the trainer config (changed in place).
+    """
+    model, datamanager = config.pipeline.model, config.pipeline.datamanager
+    model.calibration_warmup_steps, model.reference_only_warmup, model.registration_steps = 0, False, 0
+    model.coarse_to_fine = (0, 0)
+    datamanager.reference_only_steps = datamanager.registration_steps = 0
+
+
 def rig_trainer_config(method: str, steps: Optional[int], root: Path, out: Path, timestamp: str, seed: int):
     """The method's trainer config on a rig dataset, writing its nerfstudio run to ``out/<method>/<timestamp>``.
 
@@ -250,6 +265,8 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         held = {**(stage or {}).get("sensors", {}), **{n: e for n, e in (cameras or {}).get("sensors", {}).items() if not e["kept_prior"]}}
         config.pipeline.datamanager.dataparser.prior_calibration = out / ("camera_registration" if cameras else "lidar_first") / "calibration.json"
         model.camera_optimizer.frozen_sensors = tuple(n for n in held if cfg.camera_refinement is False or rig.sensors[n].type == "lidar")
+        if len(model.camera_optimizer.frozen_sensors) == len(rig.sensors) - 1:  # nothing left to calibrate in the NeRF
+            fixed_calibration_scene(config)
         if cfg.registration_sensors is not None:
             model.registration_sensors = cfg.registration_sensors
         if cfg.lidar_scene:
@@ -361,20 +378,25 @@ def run_lidar_first(cfg: CalibrateConfig, rig, prior, truth, out: Path) -> Optio
 
 
 def run_camera_registration(cfg: CalibrateConfig, rig, lidar_stage: Optional[dict], truth, out: Path) -> Optional[dict]:
-    """The camera-registration stage into ``out/camera_registration`` when the rig has a LiDAR (calibrated by the
-    LiDAR-first stage, or the reference) and a non-reference camera; its summary, or None."""
+    """The camera-registration stage into ``out/camera_registration`` when the rig has a non-reference camera and a
+    map: a LiDAR (calibrated by the LiDAR-first stage, or the reference) or, without one, the reference camera's
+    triangulated features; its summary, or None (no map: the NeRF calibrates the cameras)."""
     from moisst_ns.rig.format import Calibration, load_calibration
     from moisst_ns.stages.camera_registration import CameraRegistrationConfig, camera_sensors, register_cameras
     from moisst_ns.stages.camera_report import write_stage_outputs
-    from moisst_ns.stages.lidar_map import CameraStageError
+    from moisst_ns.stages.lidar_map import CameraStageError, NoMapError
 
-    if not camera_sensors(rig) or not any(s.type == "lidar" for s in rig.sensors.values()):
+    has_lidar = any(s.type == "lidar" for s in rig.sensors.values())
+    if not camera_sensors(rig) or not (has_lidar or rig.sensors[rig.reference_sensor].type == "camera"):
         return None
     start = load_calibration(out / "lidar_first" / "calibration.json") if lidar_stage is not None else Calibration.from_rig(rig)
     config = CameraRegistrationConfig(max_time_offset=cfg.max_time_offset if cfg.max_time_offset is not None else 0.3, seed=cfg.seed,
                                       estimate_extrinsic=cfg.extrinsics, estimate_time_offset=cfg.time_offsets)
     try:
         result = register_cameras(rig, start, config)
+    except NoMapError as err:
+        print(f"camera registration skipped: {err}; the NeRF calibrates the cameras")
+        return None
     except CameraStageError as err:
         raise CalibrationError(f"{err} (--no-camera-registration skips the camera-registration stage)") from None
     stage = write_stage_outputs(result, config, start, truth, out / "camera_registration")
@@ -383,5 +405,6 @@ def run_camera_registration(cfg: CalibrateConfig, rig, lidar_stage: Optional[dic
         if truth is not None:
             e = entry["errors_after"]
             line += f": {e['translation_cm']:.2f} cm / {e['rotation_deg']:.3f} deg / {e['time_ms']:.2f} ms from the truth"
-        print(line + (" (held-back cost not lower than at the prior: prior kept, the NeRF calibrates it)" if entry["kept_prior"] else ""))
+        why = entry["note"] or "held-back cost not significantly lower than at the prior"
+        print(line + (f" ({why}: prior kept, the NeRF calibrates it)" if entry["kept_prior"] else ""))
     return stage

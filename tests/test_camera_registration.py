@@ -12,7 +12,7 @@ from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.stages.camera_registration import CameraModel, CameraRegistrationConfig, register_cameras
-from moisst_ns.stages.lidar_map import CameraStageError, PinholeModel, project, pyramid_factors, visible
+from moisst_ns.stages.lidar_map import CameraStageError, NoMapError, PinholeModel, project, pyramid_factors, visible
 
 
 def test_pyramid_factors():
@@ -125,6 +125,8 @@ def test_keeps_the_prior_when_the_images_do_not_match(rig_folder, tmp_path):
 
 
 def test_bad_input_one_line_errors(rig_folder, tmp_path):
+    import cv2
+
     rig, _, start = lidar_at_truth(rig_folder)
     with pytest.raises(CameraStageError, match=r"rig.json: sensors.lidar: not a non-reference camera"):
         register_cameras(rig, start, CameraRegistrationConfig(), sensors=["lidar"], log=lambda s: None)
@@ -134,11 +136,13 @@ def test_bad_input_one_line_errors(rig_folder, tmp_path):
     del data["sensors"]["lidar"]
     data["frames"] = [f for f in data["frames"] if f["sensor"] != "lidar"]
     (folder / "rig.json").write_text(json.dumps(data))
-    with pytest.raises(CameraStageError, match=r"rig.json: sensors: no LiDAR to build the map from"):
+    start.T_ref_sensor.pop("lidar"), start.time_offset.pop("lidar")
+    for path in (folder / "images" / "cam_front").glob("*.png"):  # no LiDAR and a textureless reference: no map at all
+        cv2.imwrite(str(path), np.full((72, 96), 128, dtype=np.uint8))
+    with pytest.raises(NoMapError, match=r"rig.json: frames: fewer than 50 feature points of cam_front triangulate"):
         register_cameras(load_rig(folder), start, CameraRegistrationConfig(), log=lambda s: None)
     small = tmp_path / "small"
     shutil.copytree(rig_folder, small)
-    import cv2
 
     image = small / "images" / "cam_left" / "000003.png"
     cv2.imwrite(str(image), np.zeros((10, 12), dtype=np.uint8))

@@ -40,6 +40,17 @@ def test_depth_mismatch_at_the_reference_blames_a_nerf_lidar_not_a_stage_lidar()
     assert "weakly observable from this drive: z" in staged["lidar"]["caveats"]
 
 
+def test_depth_mismatch_at_the_reference_does_not_blame_a_camera_registered_against_the_lidar_map():
+    renders = [render("cam_front", 24.1)]
+    registration = {"cam_right": {"kept_prior": False}, "cam_left": {"kept_prior": True}}
+    v = sensor_verdicts(SENSORS, summary(camera_registration=registration, lidar_first={"lidar": {"weak": []}}), renders=renders,
+                        lidars=["lidar"], reference="cam_front")
+    assert v["cam_right"]["caveats"] == ["the scene disagrees with the LiDAR (median |rendered depth - LiDAR depth| = 24.10 m on "
+                                         "cam_front's render (> 1.00 m)); this camera was registered against the LiDAR map, not the scene"]
+    assert v["cam_right"]["trust"]
+    assert any(f.startswith("registered against an unreliable scene") for f in v["cam_left"]["flags"])  # kept its prior: the NeRF's
+
+
 def test_depth_mismatch_at_another_camera_flags_that_camera_only():
     renders = [render("cam_front", 0.3), render("cam_right", 0.4), render("cam_left", 5.0, depth=20.0)]
     v = sensor_verdicts(SENSORS, {}, renders=renders, lidars=["lidar"], reference="cam_front")

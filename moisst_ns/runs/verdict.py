@@ -6,8 +6,8 @@ A sensor is flagged when
 * **depth mismatch**: the median |rendered depth - LiDAR depth| over a camera's render is above
   ``max(DEPTH_MISMATCH_M, DEPTH_MISMATCH_FRACTION x median LiDAR depth)``. At the reference camera (known poses)
   it means the scene or the LiDAR is wrong: a LiDAR calibrated by the LiDAR-first stage (from its own scans, not
-  from the scene) is not blamed, the cameras are (they were registered against that scene); a LiDAR calibrated in
-  the NeRF is. At another camera, with the reference's render in agreement, it flags that camera;
+  from the scene) is not blamed, nor is a camera held at its camera-registration estimate (registered against the
+  LiDAR map); the other cameras are (they were registered against that scene); a LiDAR calibrated in the NeRF is. At another camera, with the reference's render in agreement, it flags that camera;
 * ``calibration.json`` says so: the optional per-sensor fields ``verdict`` ("converged" | "not converged" |
   "weakly observable"), ``weak`` (parameters), ``reason`` and ``uncertainty`` are shown when present.
 
@@ -44,7 +44,7 @@ def sensor_verdicts(sensors: Iterable[str], summary: Dict[str, Any], calibration
     Args:
         sensors: the non-reference sensors.
         summary: ``OUT/summary.json`` of moisst-calibrate (``errors_before``/``errors_after``, ``still_moving``,
-            ``hit_bounds``, ``lidar_first``; every key optional).
+            ``hit_bounds``, ``lidar_first``, ``camera_registration``; every key optional).
         calibration: the parsed ``calibration.json`` (its optional per-sensor ``verdict``, ``weak``, ``reason``,
             ``uncertainty`` are used when present).
         renders: the report's renders (``camera``, ``median_depth_residual_m``, optional ``median_lidar_depth_m``).
@@ -53,6 +53,7 @@ def sensor_verdicts(sensors: Iterable[str], summary: Dict[str, Any], calibration
     """
     sensors, lidars = list(sensors), [n for n in lidars]
     stage = set((summary.get("lidar_first") or {}))
+    registered = {n for n, e in (summary.get("camera_registration") or {}).items() if isinstance(e, dict) and not e.get("kept_prior")}
     mismatch = {}  # camera -> text, for the renders whose depth disagrees with the LiDAR's
     for r in renders if lidars else ():
         residual = r.get("median_depth_residual_m")
@@ -84,6 +85,9 @@ def sensor_verdicts(sensors: Iterable[str], summary: Dict[str, Any], calibration
         elif name in lidars and reference_bad:
             caveats.append(f"the scene disagrees with its depth ({reference_bad}); this LiDAR was calibrated from its "
                            "own scans, the scene is what is off")
+        elif name not in lidars and name in registered and reference_bad:
+            caveats.append(f"the scene disagrees with the LiDAR ({reference_bad}); this camera was registered against the "
+                           "LiDAR map, not the scene")
         elif name not in lidars and reference_bad:
             flags.append(f"registered against an unreliable scene ({reference_bad})")
         elif name in mismatch:

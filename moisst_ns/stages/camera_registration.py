@@ -31,7 +31,8 @@ from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, sensor_pose
-from moisst_ns.stages.lidar_map import (CameraStageError, ImageStack, PinholeModel, bilinear, lidar_map, load_pyramid, project,
+from moisst_ns.stages.camera_map import FeatureMapConfig, feature_map
+from moisst_ns.stages.lidar_map import (CameraStageError, ImageStack, NoOverlapError, PinholeModel, bilinear, lidar_map, load_pyramid, project,
                                         pyramid_factors, visible, world_to_camera)
 from moisst_ns.stages.uncertainty_math import least_squares_sigma
 
@@ -286,6 +287,8 @@ class CameraResult:
     """The held-back cost was not significantly lower at the estimate: the prior is kept."""
     history: List[Dict[str, object]] = field(default_factory=list)
     wall_s: float = 0.0
+    note: str = ""
+    """Why the camera kept its prior without a fit (it does not see the map), else empty."""
 
 
 def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
@@ -344,8 +347,8 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
         for outer in range(config.outer_iterations):
             pairs = problem.pairs(theta, factor, max(config.points_per_frame // factor, 200))
             if len(pairs.points) < 50:
-                raise CameraStageError(f"sensors.{name}: only {len(pairs.points)} observation pairs with the LiDAR map at the prior; "
-                                       "the camera does not see the mapped scene")
+                raise NoOverlapError(f"sensors.{name}: only {len(pairs.points)} observation pairs with the map at 1/{factor} resolution; "
+                                     "the camera does not see the mapped scene")
             cache: Dict[Tuple[bytes, bool], tuple] = {}
 
             def full(x, jacobian=False):
@@ -404,7 +407,9 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     """Register every non-reference camera against the map of the LiDARs at ``calibration``.
 
     Args:
-        rig: the dataset; its reference sensor must be a camera (its images carry the colours) or a LiDAR.
+        rig: the dataset; its reference sensor must be a camera (its images carry the colours) or a LiDAR. With a
+            LiDAR the map is the LiDARs' scans (``lidar_map``), without one the reference camera's triangulated
+            features (``camera_map.feature_map``).
         calibration: the calibration to start from (the LiDAR-first estimate: LiDARs calibrated, cameras at priors).
         config: settings.
         sensors: the cameras to register (default: every non-reference camera).
@@ -414,7 +419,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         The result; ``calibration`` holds the registered cameras (or their priors where kept).
 
     Raises:
-        CameraStageError: no LiDAR, an unreadable image or scan, or a camera that does not see the map.
+        CameraStageError: no map (no LiDAR and no camera reference, or no triangulated features), an unreadable image or
+            scan, or a camera that does not see the map.
     """
     cameras = camera_sensors(rig)
     if not cameras:
@@ -423,7 +429,10 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         if name not in cameras:
             raise CameraStageError(f"{rig.root / 'rig.json'}: sensors.{name}: not a non-reference camera of this rig (cameras: {cameras})")
     cameras = list(sensors) if sensors else cameras
-    world = lidar_map(rig, calibration, config.map_voxel, config.min_range, log)
+    if any(s.type == "lidar" for s in rig.sensors.values()):
+        world = lidar_map(rig, calibration, config.map_voxel, config.min_range, log)
+    else:  # a camera-only rig: the reference camera's features, triangulated from its known poses
+        world = feature_map(rig, calibration, FeatureMapConfig(voxel=config.map_voxel), log)
     traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
     widths = [int(rig.sensors[n].intrinsics["w"]) for n in cameras]
     reference_name = rig.reference_sensor if rig.sensors[rig.reference_sensor].type == "camera" else None
@@ -434,7 +443,13 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         camera = load_camera(rig, name, factors)
         reference = load_camera(rig, reference_name, factors) if reference_name else None
         problem = Registration(traj, world, camera, reference, calibration, config)
-        results[name] = register_camera(problem, config, log)
+        try:
+            results[name] = register_camera(problem, config, log)
+        except NoOverlapError as err:
+            prior = np.asarray(calibration.T_ref_sensor[name], dtype=np.float64)
+            results[name] = CameraResult(name, prior, float(calibration.time_offset[name]), prior, float(calibration.time_offset[name]),
+                                         [float("inf")] * 7, float("nan"), float("nan"), True, note=str(err))
+            log(f"[camera-registration] {name}: {err}; it keeps its prior here")
         r = results[name]
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
     return CameraStageResult(out, results, len(world))

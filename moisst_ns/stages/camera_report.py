@@ -20,6 +20,10 @@ REPORT_MD = "camera_registration.md"
 UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
 
 
+def _finite(value: float) -> Optional[float]:
+    return float(value) if np.isfinite(value) else None
+
+
 def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, start: Calibration,
                   truth: Optional[Calibration]) -> dict:
     """The JSON-ready record of a stage run (``camera_registration.json``).
@@ -35,8 +39,8 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
         entry = {"T_ref_sensor": np.asarray(r.estimate).tolist(), "time_offset": r.time_offset, "prior_T_ref_sensor": np.asarray(r.prior).tolist(),
                  "prior_time_offset": r.prior_offset, "sigma": [s if np.isfinite(s) else None for s in sigma],
                  "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step],
-                 "loss_estimate": r.cost_estimate, "loss_prior": r.cost_prior, "kept_prior": r.kept_prior,
-                 "wall_s": r.wall_s, "history": r.history}
+                 "loss_estimate": _finite(r.cost_estimate), "loss_prior": _finite(r.cost_prior), "kept_prior": r.kept_prior,
+                 "note": r.note, "wall_s": r.wall_s, "history": r.history}
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry
@@ -55,6 +59,9 @@ def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationCon
           "camera's (module `moisst_ns.stages.camera_registration`). Held-back cost: mean Huber cost of fresh pairs at the "
           "estimate vs at the prior; a camera whose estimate is not better keeps its prior.", ""]
     for name, s in summary["sensors"].items():
+        if s["note"]:
+            md += [f"## {name}", "", f"Prior kept: {s['note']}.", ""]
+            continue
         md += [f"## {name}", "", f"{s['wall_s']:.1f} s; held-back cost {s['loss_prior']:.4f} at the prior, {s['loss_estimate']:.4f} at the "
                f"estimate{' (prior kept)' if s['kept_prior'] else ''}.", "",
                "| | " + " | ".join(PARAMETERS) + " |", "|---|" + "---|" * len(PARAMETERS),

@@ -25,6 +25,14 @@ class CameraStageError(ValueError):
     """The camera-registration stage cannot run on this input; the message is one line naming the file and field."""
 
 
+class NoMapError(CameraStageError):
+    """The data hold no usable map (too few triangulated features): the stage is skipped, the NeRF calibrates."""
+
+
+class NoOverlapError(CameraStageError):
+    """A camera sees too little of the map: it keeps its prior in this stage, the NeRF calibrates it."""
+
+
 def lidar_map(rig: Rig, calibration: Calibration, voxel: float, min_range: float,
               log: Callable[[str], None] = print) -> Float[np.ndarray, "num 3"]:
     """Every scan of every LiDAR placed in the world by paper eq. 1-2 at ``calibration``, on a voxel grid.

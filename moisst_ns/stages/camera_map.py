@@ -1,0 +1,120 @@
+"""A metric map without a LiDAR: image features of the reference camera triangulated from its known poses.
+
+The reference camera's poses are the reference trajectory (eq. 1-2 with the identity extrinsic and no offset), so
+features matched between two of its frames (SIFT, Lowe's ratio test, ``cv2``) triangulate to metric world points
+(``cv2.triangulatePoints`` on undistorted, normalised coordinates). A point is kept when it lies in front of both
+frames, reprojects within ``max_reprojection_px`` in both and is seen under at least ``min_parallax_deg`` (depth
+from small parallax is noise). ``camera_registration`` then registers the other cameras against these points as
+it does against a LiDAR map (the features sit on texture, where photometric alignment has gradient). No nerfstudio
+import.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, List
+
+import numpy as np
+import open3d as o3d
+import torch
+from jaxtyping import Float
+
+from moisst_ns.rig.format import Calibration, Rig
+from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.stages.lidar_map import CameraStageError, NoMapError, PinholeModel, project
+
+
+@dataclass
+class FeatureMapConfig:
+    """Settings of the reference camera's feature map."""
+
+    features: int = 2000
+    """SIFT features per frame."""
+    ratio: float = 0.75
+    """Lowe's ratio test of the nearest and second-nearest descriptor distances."""
+    max_gap: int = 4
+    """Each frame is matched with the next ``max_gap`` frames."""
+    min_parallax_deg: float = 2.0
+    """Least angle between the two viewing rays of a triangulated point, degrees."""
+    max_reprojection_px: float = 1.0
+    """Largest reprojection error in either frame, pixels."""
+    voxel: float = 0.05
+    """One point per voxel of this size, metres."""
+
+
+def _camera_matrix(intr: dict) -> np.ndarray:
+    return np.array([[float(intr["fl_x"]), 0.0, float(intr["cx"]) - 0.5], [0.0, float(intr["fl_y"]), float(intr["cy"]) - 0.5], [0.0, 0.0, 1.0]])
+
+
+def _distortion(intr: dict) -> np.ndarray:
+    return np.array([float(intr.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")])
+
+
+def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, log: Callable[[str], None] = print) -> Float[np.ndarray, "num 3"]:
+    """Triangulated SIFT features of the reference camera, world frame, metres.
+
+    Args:
+        rig: the dataset (its reference sensor must be a camera).
+        calibration: the calibration (the reference camera's extrinsic and offset, normally identity and 0).
+        config: settings.
+        log: where progress lines go.
+
+    Returns:
+        World points on a ``config.voxel`` grid.
+
+    Raises:
+        CameraStageError: the reference sensor is not a camera or an image cannot be read; ``NoMapError`` when
+            fewer than 50 points triangulate.
+    """
+    import cv2
+
+    name = rig.reference_sensor
+    spec = rig.sensors[name]
+    if spec.type != "camera":
+        raise CameraStageError(f"{rig.root / 'rig.json'}: reference_sensor: {name} is a {spec.type}; a map without a LiDAR needs a camera reference")
+    frames = sorted(rig.frames_of(name), key=lambda f: f.timestamp)
+    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    stamps = torch.tensor([f.timestamp for f in frames], dtype=torch.float64) - float(rig.trajectory_stamps[0])
+    T = torch.from_numpy(np.asarray(calibration.T_ref_sensor[name], dtype=np.float64))
+    poses = (traj(stamps + float(calibration.time_offset[name])) @ T).numpy()
+    K, dist = _camera_matrix(spec.intrinsics), _distortion(spec.intrinsics)
+    model = PinholeModel.of(spec.intrinsics)
+    sift = cv2.SIFT_create(nfeatures=config.features)
+    keys: List[np.ndarray] = []
+    descs: List[np.ndarray] = []
+    for frame in frames:
+        image = cv2.imread(str(rig.root / frame.file_path), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise CameraStageError(f"{rig.root / frame.file_path}: file_path: missing or not an image")
+        kp, desc = sift.detectAndCompute(image, None)
+        keys.append(np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2))
+        descs.append(desc if desc is not None else np.zeros((0, 128), np.float32))
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    points = []
+    for a in range(len(frames)):
+        for b in range(a + 1, min(a + 1 + config.max_gap, len(frames))):
+            if len(descs[a]) < 2 or len(descs[b]) < 2:
+                continue
+            pairs = [m for m, n in (p for p in matcher.knnMatch(descs[a], descs[b], k=2) if len(p) == 2) if m.distance < config.ratio * n.distance]
+            if len(pairs) < 8:
+                continue
+            ia, ib = np.array([m.queryIdx for m in pairs]), np.array([m.trainIdx for m in pairs])
+            norm = [cv2.undistortPoints(keys[f][i].reshape(-1, 1, 2), K, dist).reshape(-1, 2) for f, i in ((a, ia), (b, ib))]
+            proj = [np.linalg.inv(poses[f])[:3] for f in (a, b)]
+            hom = cv2.triangulatePoints(proj[0], proj[1], norm[0].T, norm[1].T)
+            world = (hom[:3] / np.where(np.abs(hom[3]) > 1e-12, hom[3], np.nan)).T
+            ok = np.all(np.isfinite(world), axis=1)
+            for f, i in ((a, ia), (b, ib)):
+                cam = (world - poses[f][:3, 3]) @ poses[f][:3, :3]
+                uv, z = project(model, torch.from_numpy(np.nan_to_num(cam)))
+                ok &= (z.numpy() > 0.5) & (np.linalg.norm(uv.numpy() - (keys[f][i] + 0.5), axis=1) < config.max_reprojection_px)
+            rays = [world - poses[f][:3, 3] for f in (a, b)]
+            cos = np.sum(rays[0] * rays[1], axis=1) / np.maximum(np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1), 1e-12)
+            ok &= np.degrees(np.arccos(np.clip(cos, -1, 1))) >= config.min_parallax_deg
+            points.append(world[ok])
+    if not points or sum(len(p) for p in points) < 50:
+        raise NoMapError(f"{rig.root / 'rig.json'}: frames: fewer than 50 feature points of {name} triangulate (too little texture or motion)")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points)))
+    world = np.asarray(cloud.voxel_down_sample(config.voxel).points)
+    log(f"[camera-registration] feature map: {len(world)} points triangulated from {len(frames)} frames of {name}")
+    return world
