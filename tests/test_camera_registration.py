@@ -11,7 +11,8 @@ from moisst_ns.datasets.synth import SynthConfig, make_rig
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera_registration import CameraModel, CameraRegistrationConfig, register_cameras
+from moisst_ns.stages.camera_registration import CameraRegistrationConfig, register_cameras
+from moisst_ns.stages.photometric import CameraModel
 from moisst_ns.stages.lidar_map import CameraStageError, NoMapError, PinholeModel, project, pyramid_factors, visible
 
 

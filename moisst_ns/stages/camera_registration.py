@@ -26,17 +26,15 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
-from jaxtyping import Float, Int
+from jaxtyping import Float
 from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration, Rig
-from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, sensor_pose
+from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.stages.camera_map import FeatureMapConfig, feature_map
-from moisst_ns.stages.lidar_map import (CameraStageError, ImageStack, NoOverlapError, PinholeModel, bilinear, lidar_map, load_pyramid, project,
-                                        pyramid_factors, visible, world_to_camera)
+from moisst_ns.stages.lidar_map import CameraStageError, NoOverlapError, PinholeModel, lidar_map, load_pyramid, pyramid_factors
+from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
 from moisst_ns.stages.uncertainty_math import least_squares_sigma
-
-PARAMETERS = ("rx", "ry", "rz", "x", "y", "z", "time_offset")
 
 
 @dataclass
@@ -81,19 +79,12 @@ class CameraRegistrationConfig:
     """Estimate the extrinsic (else it stays at the prior)."""
     estimate_time_offset: bool = True
     """Estimate the time offset (else it stays at the prior)."""
+    split_half: bool = True
+    """Also solve the two halves of the drive and report sigma as at least their spread (``split_half_spread``; two
+    more solves at full resolution)."""
     seed: int = 0
     """Seed of the point samples."""
 
-
-@dataclass
-class CameraFrames:
-    """One camera's frames: own-clock stamps (seconds since the trajectory's ``t0``) and the image pyramid."""
-
-    sensor: str
-    stamps: Float[np.ndarray, "frames"]
-    levels: Dict[int, ImageStack]
-    model: PinholeModel
-    """Full-resolution intrinsics."""
 
 
 def load_camera(rig: Rig, sensor: str, factors: Sequence[int]) -> CameraFrames:
@@ -105,165 +96,6 @@ def load_camera(rig: Rig, sensor: str, factors: Sequence[int]) -> CameraFrames:
     return CameraFrames(sensor, stamps, load_pyramid(rig, sensor, [f.file_path for f in frames], factors),
                         PinholeModel.of(rig.sensors[sensor].intrinsics))
 
-
-class CameraModel:
-    """``theta -> pixel`` of map points in a camera's frames (eq. 1, 2, 12), and its Jacobian (forward mode)."""
-
-    def __init__(self, traj: ReferenceTrajectory, prior: Float[np.ndarray, "4 4"], prior_offset: float,
-                 stamps: Float[np.ndarray, "frames"]):
-        self.traj, self.prior_offset = traj, prior_offset
-        self.prior = torch.from_numpy(np.asarray(prior, dtype=np.float64))
-        self.stamps = torch.from_numpy(np.asarray(stamps, dtype=np.float64))
-
-    def poses(self, theta: Float[torch.Tensor, "7"]) -> Float[torch.Tensor, "frames 4 4"]:
-        """``world_T_c`` of every frame: ``T_r(s_k + delta_prior + d) @ ref_T_c(w, v)``."""
-        ext = calibrated_extrinsic(self.prior, theta[:3], theta[3:6])
-        return sensor_pose(self.traj(self.stamps + self.prior_offset + theta[6]), ext)
-
-    def pixels(self, theta: Float[np.ndarray, "7"], model: PinholeModel, points: Float[np.ndarray, "num 3"],
-               frame: Int[np.ndarray, "num"], jacobian: bool) -> Tuple[Float[np.ndarray, "num 2"], Optional[Float[np.ndarray, "num 2 7"]]]:
-        """Pixels of ``points`` in frames ``frame`` at correction ``theta`` (and ``d pixel / d theta``)."""
-        pts, idx = torch.from_numpy(points), torch.from_numpy(frame)
-
-        def uv(th):
-            return project(model, world_to_camera(self.poses(th)[idx], pts))[0]
-
-        th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
-        with torch.no_grad():
-            value = uv(th).numpy()
-            return value, (torch.func.jacfwd(uv)(th).numpy() if jacobian else None)
-
-
-@dataclass
-class PairSet:
-    """Pairs of observations of map points: camera ``c``'s frame ``frame_a`` against a partner observation."""
-
-    points: Float[np.ndarray, "rows 3"]
-    frame_a: Int[np.ndarray, "rows"]
-    own: np.ndarray
-    """(rows,) bool: the partner is another frame of the same camera (else a reference-camera frame)."""
-    frame_b: Int[np.ndarray, "rows"]
-    """The partner frame (the camera's own frame index, or the reference camera's frame index)."""
-    value_b: Float[np.ndarray, "rows"]
-    """Grey level of reference partners (fixed; 0 for own partners)."""
-
-
-class Registration:
-    """The photometric problem of one camera: pair selection, residuals, Jacobian and solve."""
-
-    def __init__(self, traj: ReferenceTrajectory, world: np.ndarray, camera: CameraFrames, reference: Optional[CameraFrames],
-                 prior: Calibration, config: CameraRegistrationConfig):
-        """``reference``: the reference camera's frames (None when the reference sensor is a LiDAR: own pairs only)."""
-        self.world, self.camera, self.reference, self.config = world, camera, reference, config
-        name = camera.sensor
-        self.model = CameraModel(traj, np.asarray(prior.T_ref_sensor[name]), float(prior.time_offset[name]), camera.stamps)
-        if reference is not None:
-            ref_name = reference.sensor
-            self.ref_model = CameraModel(traj, np.asarray(prior.T_ref_sensor[ref_name]), float(prior.time_offset[ref_name]), reference.stamps)
-            ref_poses = self.ref_model.poses(torch.zeros(7, dtype=torch.float64)).numpy()
-            self.ref_visible = np.stack([self._visible(ref_poses[j], reference.model) for j in range(len(reference.stamps))])
-        self.rng = np.random.default_rng(config.seed)
-
-    # -- visibility -------------------------------------------------------------------------------------------
-    def _visible(self, pose: np.ndarray, model: PinholeModel) -> np.ndarray:
-        """(map points,) bool: which map points a frame at ``pose`` sees (z-buffer)."""
-        near = np.linalg.norm(self.world - pose[:3, 3], axis=1) < self.config.max_depth
-        index = np.flatnonzero(near)
-        cam = (self.world[index] - pose[:3, 3]) @ pose[:3, :3]
-        uv, z = project(model, torch.from_numpy(cam))
-        uv, z = uv.numpy(), z.numpy()
-        c = self.config
-        ok = visible(uv, z, model, c.zbuffer_cell, c.occlusion_margin_m, c.occlusion_margin_fraction, c.max_depth)
-        mask = np.zeros(len(self.world), dtype=bool)
-        mask[index[ok]] = True
-        return mask
-
-    def pairs(self, theta: np.ndarray, factor: int, per_frame: int) -> PairSet:
-        """Sample map points visible in every frame of the camera at ``theta`` and give each its partners."""
-        cam, ref, c = self.camera, self.reference, self.config
-        poses = self.model.poses(torch.from_numpy(theta)).numpy()
-        seen_by = np.stack([self._visible(poses[k], cam.model) for k in range(len(cam.stamps))])
-        travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))]
-        stack = cam.levels[factor]
-        rows = {"points": [], "frame_a": [], "own": [], "frame_b": [], "value_b": []}
-        for k in range(len(cam.stamps)):
-            candidates = np.flatnonzero(seen_by[k])
-            if len(candidates) == 0:
-                continue
-            uv, _ = self.model.pixels(theta, stack.model, self.world[candidates], np.full(len(candidates), k), jacobian=False)
-            _, grad, ok = bilinear(stack, np.full(len(candidates), k), uv)
-            weight = np.linalg.norm(grad, axis=1) * ok
-            if weight.sum() <= 0:
-                continue
-            take = self.rng.choice(len(candidates), size=min(per_frame, int((weight > 0).sum())), replace=False, p=weight / weight.sum())
-            chosen = candidates[take]
-            # reference partner: the reference frame nearest in time that sees the point
-            pending = np.full(len(chosen), ref is not None)
-            for j in (np.argsort(np.abs(ref.stamps - cam.stamps[k])) if ref is not None else []):
-                if not pending.any():
-                    break
-                seen = self.ref_visible[j, chosen] & pending
-                if not seen.any():
-                    continue
-                ref_stack = ref.levels[factor]
-                uvb, _ = self.ref_model.pixels(np.zeros(7), ref_stack.model, self.world[chosen[seen]], np.full(int(seen.sum()), j), False)
-                value, _, okb = bilinear(ref_stack, np.full(int(seen.sum()), j), uvb)
-                hit = np.flatnonzero(seen)[okb]
-                for key, val in (("points", chosen[hit]), ("frame_a", np.full(len(hit), k)), ("own", np.zeros(len(hit), bool)),
-                                 ("frame_b", np.full(len(hit), j)), ("value_b", value[okb])):
-                    rows[key].append(val)
-                pending[hit] = False
-            # own partner: the nearest frame at least own_baseline of driving away (both sides when possible)
-            for partner in (self._partner(travelled, k, +1), self._partner(travelled, k, -1)):
-                if partner is None:
-                    continue
-                seen = seen_by[partner, chosen]
-                for key, val in (("points", chosen[seen]), ("frame_a", np.full(int(seen.sum()), k)), ("own", np.ones(int(seen.sum()), bool)),
-                                 ("frame_b", np.full(int(seen.sum()), partner)), ("value_b", np.zeros(int(seen.sum())))):
-                    rows[key].append(val)
-        if not rows["points"]:
-            return PairSet(np.zeros((0, 3)), *(np.zeros(0, dtype=t) for t in (np.int64, bool, np.int64, np.float64)))
-        cat = {k: np.concatenate(v) for k, v in rows.items()}
-        return PairSet(self.world[cat["points"]], cat["frame_a"], cat["own"], cat["frame_b"], cat["value_b"])
-
-    def _partner(self, travelled: np.ndarray, k: int, direction: int) -> Optional[int]:
-        far = np.flatnonzero(np.abs(travelled - travelled[k]) >= self.config.own_baseline)
-        far = far[far > k] if direction > 0 else far[far < k]
-        if len(far) == 0:
-            return None
-        return int(far.min() if direction > 0 else far.max())
-
-    # -- residuals --------------------------------------------------------------------------------------------
-    def residuals(self, theta: np.ndarray, pairs: PairSet, factor: int, jacobian: bool):
-        """``I_c(u_a) - I_b(u_b)`` per pair (0 where an observation leaves the image) and ``d r / d theta``."""
-        stack = self.camera.levels[factor]
-        uv_a, ju_a = self.model.pixels(theta, stack.model, pairs.points, pairs.frame_a, jacobian)
-        value_a, grad_a, ok = bilinear(stack, pairs.frame_a, uv_a)
-        value_b = pairs.value_b.copy()
-        jac = np.einsum("nc,ncp->np", grad_a, ju_a) if jacobian else None
-        own = np.flatnonzero(pairs.own)
-        if len(own):
-            uv_b, ju_b = self.model.pixels(theta, stack.model, pairs.points[own], pairs.frame_b[own], jacobian)
-            vb, grad_b, okb = bilinear(stack, pairs.frame_b[own], uv_b)
-            value_b[own] = vb
-            ok[own] &= okb
-            if jacobian:
-                jac[own] -= np.einsum("nc,ncp->np", grad_b, ju_b)
-        res = np.where(ok, value_a - value_b, 0.0)
-        if jacobian:
-            jac[~ok] = 0.0
-        return res, jac, ok
-
-
-def huber_costs(residuals: np.ndarray, scale: float) -> np.ndarray:
-    """Huber cost of each residual (``0.5 r^2`` inside ``scale``, linear beyond)."""
-    a = np.abs(residuals)
-    return np.where(a <= scale, 0.5 * a * a, scale * (a - 0.5 * scale))
-
-
-def robust_cost(residuals: np.ndarray, scale: float) -> float:
-    """Mean Huber cost of residuals (nan for none)."""
-    return float(np.mean(huber_costs(residuals, scale))) if len(residuals) else float("nan")
 
 
 @dataclass
@@ -277,8 +109,9 @@ class CameraResult:
     """``ref_T_c`` (the prior again when ``kept_prior``)."""
     time_offset: float
     sigma: List[float]
-    """Standard deviations of the 7 corrections (rad, rad, rad, m, m, m, s): max of classical and frame-clustered
-    (``uncertainty_math.least_squares_sigma``), from the finest level's last solve; inf where unconstrained."""
+    """Standard deviations of the 7 corrections (rad, rad, rad, m, m, m, s): the larger of the formal one (max of
+    classical and frame-clustered, ``uncertainty_math.least_squares_sigma``, from the finest level's last solve; inf
+    where unconstrained) and the split-half spread (``split_half_spread``)."""
     cost_prior: float
     """Held-back mean Huber cost at the prior (fresh samples at the finest level: ``held_back_check``)."""
     cost_estimate: float
@@ -289,6 +122,10 @@ class CameraResult:
     wall_s: float = 0.0
     note: str = ""
     """Why the camera kept its prior without a fit (it does not see the map), else empty."""
+    sigma_formal: List[float] = field(default_factory=list)
+    """The formal part of ``sigma`` (same order and units)."""
+    sigma_split: List[float] = field(default_factory=list)
+    """The split-half part of ``sigma`` (``split_half_spread``; zeros when ``split_half`` is off)."""
 
 
 def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
@@ -333,13 +170,62 @@ def held_back_check(problem: Registration, theta: np.ndarray, factor: int, confi
     return robust_cost(r_pri[both], config.huber), robust_cost(r_est[both], config.huber), bool(significant)
 
 
+def _solve(problem: Registration, theta: np.ndarray, active: np.ndarray, pairs: PairSet, factor: int, config: CameraRegistrationConfig):
+    """One robust (Huber) trust-region solve of the active corrections from ``theta`` on fixed pairs.
+
+    Returns:
+        (the new corrections, residual evaluations used, (residuals, Jacobian, valid) at the solution).
+    """
+    bound = np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset][active]
+    scale = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005][active]
+    cache: Dict[Tuple[bytes, bool], tuple] = {}
+
+    def full(x, jacobian=False):
+        th = theta.copy()
+        th[active] = x
+        key = (th.tobytes(), jacobian)
+        if key not in cache:  # least_squares asks for the residuals of every trial step, the Jacobian of accepted ones
+            cache.clear()
+            cache[key] = problem.residuals(th, pairs, factor, jacobian=jacobian)
+        return cache[key]
+
+    solution = least_squares(lambda x: full(x)[0], theta[active], jac=lambda x: full(x, True)[1][:, active], method="trf",
+                             loss="huber", f_scale=config.huber, x_scale=scale, max_nfev=config.max_evaluations, bounds=(-bound, bound))
+    out = theta.copy()
+    out[active] = solution.x
+    return out, solution.nfev, full(solution.x, True)
+
+
+def _subset(pairs: PairSet, rows: np.ndarray) -> PairSet:
+    return PairSet(pairs.points[rows], pairs.frame_a[rows], pairs.own[rows], pairs.frame_b[rows], pairs.value_b[rows])
+
+
+def split_half_spread(problem: Registration, theta: np.ndarray, active: np.ndarray, factor: int,
+                      config: CameraRegistrationConfig) -> Float[np.ndarray, "7"]:
+    """Half the difference between the estimates from the first and the second half of the drive.
+
+    Each half (the camera's frames split in time) is solved from ``theta`` on fresh pairs. For two independent
+    halves ``|a - b| / 2`` estimates the standard deviation of the whole drive's estimate, and unlike the formal sigma
+    it also sees what changes along the drive (a bias of one stretch of road, of one kind of motion).
+
+    Returns:
+        Per correction (rad, rad, rad, m, m, m, s); inf where a half has fewer than 50 pairs, 0 for inactive ones.
+    """
+    pairs = problem.pairs(theta, factor, max(config.points_per_frame // factor, 200))
+    half = len(problem.camera.stamps) // 2
+    estimates = []
+    for rows in (pairs.frame_a < half, pairs.frame_a >= half):
+        if rows.sum() < 50:
+            return np.where(active, np.inf, 0.0)
+        estimates.append(_solve(problem, theta, active, _subset(pairs, rows), factor, config)[0])
+    return np.abs(estimates[0] - estimates[1]) / 2
+
+
 def register_camera(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None] = print) -> CameraResult:
     """Coarse-to-fine photometric registration of one camera against the map (see the module docstring)."""
     start = time.perf_counter()
     name = problem.camera.sensor
     active = np.array([config.estimate_extrinsic] * 6 + [config.estimate_time_offset])
-    bound = np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset][active]
-    scale = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005][active]
     theta, history = np.zeros(7), []
     factors = sorted(problem.camera.levels, reverse=True)
     last = None
@@ -349,43 +235,28 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
             if len(pairs.points) < 50:
                 raise NoOverlapError(f"sensors.{name}: only {len(pairs.points)} observation pairs with the map at 1/{factor} resolution; "
                                      "the camera does not see the mapped scene")
-            cache: Dict[Tuple[bytes, bool], tuple] = {}
-
-            def full(x, jacobian=False):
-                th = theta.copy()
-                th[active] = x
-                key = (th.tobytes(), jacobian)
-                if key not in cache:  # least_squares asks for the residuals of every trial step, the Jacobian of accepted ones
-                    cache.clear()
-                    cache[key] = problem.residuals(th, pairs, factor, jacobian=jacobian)
-                return cache[key]
-
-            solution = least_squares(lambda x: full(x)[0], theta[active], jac=lambda x: full(x, True)[1][:, active], method="trf",
-                                     loss="huber", f_scale=config.huber, x_scale=scale, max_nfev=config.max_evaluations,
-                                     bounds=(-bound, bound))
-            step = solution.x - theta[active]
-            theta[active] = solution.x
-            res, jac, ok = full(solution.x, True)
+            previous = theta
+            theta, evaluations, (res, jac, ok) = _solve(problem, theta, active, pairs, factor, config)
             last = (res, jac, ok, pairs)
             pose, offset = _corrected(problem.model.prior.numpy(), problem.model.prior_offset, theta)
             history.append({"level": factor, "iteration": outer, "pairs": int(ok.sum()), "cost": robust_cost(res[ok], config.huber),
                             "T_ref_sensor": pose.tolist(), "time_offset": offset, "elapsed_s": time.perf_counter() - start})
             log(f"[camera-registration] {name}: 1/{factor} resolution, iteration {outer}: {int(ok.sum())} pairs, "
-                f"cost {history[-1]['cost']:.4f}, {solution.nfev} evaluations")
-            if _pixel_motion(problem, theta, step, active, pairs, factor) < 0.1:
+                f"cost {history[-1]['cost']:.4f}, {evaluations} evaluations")
+            if _pixel_motion(problem, theta, (theta - previous)[active], active, pairs, factor) < 0.1:
                 break
-    res, jac, ok, _ = last
-    sig = np.full(7, 0.0)
+    res, jac, ok, pairs = last
+    formal = np.zeros(7)
     if active.any():
         weights = np.sqrt(np.minimum(1.0, config.huber / np.maximum(np.abs(res[ok]), 1e-12)))
-        frames = last[3].frame_a[ok]
-        sig[active] = least_squares_sigma(jac[ok][:, active] * weights[:, None], res[ok] * weights, frames).sigma
+        formal[active] = least_squares_sigma(jac[ok][:, active] * weights[:, None], res[ok] * weights, pairs.frame_a[ok]).sigma
+    spread = split_half_spread(problem, theta, active, factors[-1], config) if config.split_half and active.any() else np.zeros(7)
     cost_pri, cost_est, better = held_back_check(problem, theta, factors[-1], config)
     kept = not better
     prior = problem.model.prior.numpy()
     pose, offset = (prior, problem.model.prior_offset) if kept else _corrected(prior, problem.model.prior_offset, theta)
-    return CameraResult(name, prior, problem.model.prior_offset, pose, offset, sig.tolist(), cost_pri, cost_est, kept, history,
-                        time.perf_counter() - start)
+    return CameraResult(name, prior, problem.model.prior_offset, pose, offset, np.fmax(formal, spread).tolist(), cost_pri, cost_est, kept,
+                        history, time.perf_counter() - start, sigma_formal=formal.tolist(), sigma_split=spread.tolist())
 
 
 @dataclass

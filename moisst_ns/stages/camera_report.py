@@ -28,19 +28,21 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                   truth: Optional[Calibration]) -> dict:
     """The JSON-ready record of a stage run (``camera_registration.json``).
 
-    ``sigma`` is in the trust order (``x, y, z, roll, pitch, yaw, time_offset``; m, rad, s); a parameter whose sigma
-    exceeds its typical prior error (10 cm, 1 deg, 10 ms) is listed in ``weak``.
+    ``sigma`` (and its two parts ``sigma_formal``, ``sigma_split_half``) is in the trust order (``x, y, z, roll, pitch,
+    yaw, time_offset``; m, rad, s); a parameter whose sigma exceeds its typical prior error (10 cm, 1 deg, 10 ms) is
+    listed in ``weak``.
     """
     before = calibration_report_errors(start, truth) if truth else {}
     after = calibration_report_errors(result.calibration, truth) if truth else {}
     sensors = {}
     for name, r in result.cameras.items():
         sigma = [float(r.sigma[j]) for j in JACOBIAN_ORDER]
+        parts = {f"sigma_{k}": [_finite(v[j]) for j in JACOBIAN_ORDER] for k, v in (("formal", r.sigma_formal), ("split_half", r.sigma_split)) if v}
         entry = {"T_ref_sensor": np.asarray(r.estimate).tolist(), "time_offset": r.time_offset, "prior_T_ref_sensor": np.asarray(r.prior).tolist(),
                  "prior_time_offset": r.prior_offset, "sigma": [s if np.isfinite(s) else None for s in sigma],
                  "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step],
                  "loss_estimate": _finite(r.cost_estimate), "loss_prior": _finite(r.cost_prior), "kept_prior": r.kept_prior,
-                 "note": r.note, "wall_s": r.wall_s, "history": r.history}
+                 "note": r.note, "wall_s": r.wall_s, "history": r.history, **parts}
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry

@@ -1,0 +1,188 @@
+"""The photometric problem of the camera-registration stage: a camera's pixels as a function of its 7 corrections
+(eq. 1, 2, 12) with their Jacobian, pairs of observations of map points, and their residuals. The method is described
+in ``moisst_ns.stages.camera_registration``'s docstring. No nerfstudio import."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+import torch
+from jaxtyping import Float, Int
+
+from moisst_ns.rig.format import Calibration
+from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, sensor_pose
+from moisst_ns.stages.lidar_map import ImageStack, PinholeModel, bilinear, project, visible, world_to_camera
+
+
+@dataclass
+class CameraFrames:
+    """One camera's frames: own-clock stamps (seconds since the trajectory's ``t0``) and the image pyramid."""
+
+    sensor: str
+    stamps: Float[np.ndarray, "frames"]
+    levels: Dict[int, ImageStack]
+    model: PinholeModel
+    """Full-resolution intrinsics."""
+
+
+class CameraModel:
+    """``theta -> pixel`` of map points in a camera's frames (eq. 1, 2, 12), and its Jacobian (forward mode)."""
+
+    def __init__(self, traj: ReferenceTrajectory, prior: Float[np.ndarray, "4 4"], prior_offset: float,
+                 stamps: Float[np.ndarray, "frames"]):
+        self.traj, self.prior_offset = traj, prior_offset
+        self.prior = torch.from_numpy(np.asarray(prior, dtype=np.float64))
+        self.stamps = torch.from_numpy(np.asarray(stamps, dtype=np.float64))
+
+    def poses(self, theta: Float[torch.Tensor, "7"]) -> Float[torch.Tensor, "frames 4 4"]:
+        """``world_T_c`` of every frame: ``T_r(s_k + delta_prior + d) @ ref_T_c(w, v)``."""
+        ext = calibrated_extrinsic(self.prior, theta[:3], theta[3:6])
+        return sensor_pose(self.traj(self.stamps + self.prior_offset + theta[6]), ext)
+
+    def pixels(self, theta: Float[np.ndarray, "7"], model: PinholeModel, points: Float[np.ndarray, "num 3"],
+               frame: Int[np.ndarray, "num"], jacobian: bool) -> Tuple[Float[np.ndarray, "num 2"], Optional[Float[np.ndarray, "num 2 7"]]]:
+        """Pixels of ``points`` in frames ``frame`` at correction ``theta`` (and ``d pixel / d theta``)."""
+        pts, idx = torch.from_numpy(points), torch.from_numpy(frame)
+
+        def uv(th):
+            return project(model, world_to_camera(self.poses(th)[idx], pts))[0]
+
+        th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
+        with torch.no_grad():
+            value = uv(th).numpy()
+            return value, (torch.func.jacfwd(uv)(th).numpy() if jacobian else None)
+
+
+@dataclass
+class PairSet:
+    """Pairs of observations of map points: camera ``c``'s frame ``frame_a`` against a partner observation."""
+
+    points: Float[np.ndarray, "rows 3"]
+    frame_a: Int[np.ndarray, "rows"]
+    own: np.ndarray
+    """(rows,) bool: the partner is another frame of the same camera (else a reference-camera frame)."""
+    frame_b: Int[np.ndarray, "rows"]
+    """The partner frame (the camera's own frame index, or the reference camera's frame index)."""
+    value_b: Float[np.ndarray, "rows"]
+    """Grey level of reference partners (fixed; 0 for own partners)."""
+
+
+class Registration:
+    """The photometric problem of one camera: pair selection, residuals, Jacobian and solve."""
+
+    def __init__(self, traj: ReferenceTrajectory, world: np.ndarray, camera: CameraFrames, reference: Optional[CameraFrames],
+                 prior: Calibration, config):
+        """``reference``: the reference camera's frames (None when the reference sensor is a LiDAR: own pairs only);
+        ``config``: the stage's ``CameraRegistrationConfig``."""
+        self.world, self.camera, self.reference, self.config = world, camera, reference, config
+        name = camera.sensor
+        self.model = CameraModel(traj, np.asarray(prior.T_ref_sensor[name]), float(prior.time_offset[name]), camera.stamps)
+        if reference is not None:
+            ref_name = reference.sensor
+            self.ref_model = CameraModel(traj, np.asarray(prior.T_ref_sensor[ref_name]), float(prior.time_offset[ref_name]), reference.stamps)
+            ref_poses = self.ref_model.poses(torch.zeros(7, dtype=torch.float64)).numpy()
+            self.ref_visible = np.stack([self._visible(ref_poses[j], reference.model) for j in range(len(reference.stamps))])
+        self.rng = np.random.default_rng(config.seed)
+
+    # -- visibility -------------------------------------------------------------------------------------------
+    def _visible(self, pose: np.ndarray, model: PinholeModel) -> np.ndarray:
+        """(map points,) bool: which map points a frame at ``pose`` sees (z-buffer)."""
+        near = np.linalg.norm(self.world - pose[:3, 3], axis=1) < self.config.max_depth
+        index = np.flatnonzero(near)
+        cam = (self.world[index] - pose[:3, 3]) @ pose[:3, :3]
+        uv, z = project(model, torch.from_numpy(cam))
+        uv, z = uv.numpy(), z.numpy()
+        c = self.config
+        ok = visible(uv, z, model, c.zbuffer_cell, c.occlusion_margin_m, c.occlusion_margin_fraction, c.max_depth)
+        mask = np.zeros(len(self.world), dtype=bool)
+        mask[index[ok]] = True
+        return mask
+
+    def pairs(self, theta: np.ndarray, factor: int, per_frame: int) -> PairSet:
+        """Sample map points visible in every frame of the camera at ``theta`` and give each its partners."""
+        cam, ref, c = self.camera, self.reference, self.config
+        poses = self.model.poses(torch.from_numpy(theta)).numpy()
+        seen_by = np.stack([self._visible(poses[k], cam.model) for k in range(len(cam.stamps))])
+        travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))]
+        stack = cam.levels[factor]
+        rows = {"points": [], "frame_a": [], "own": [], "frame_b": [], "value_b": []}
+        for k in range(len(cam.stamps)):
+            candidates = np.flatnonzero(seen_by[k])
+            if len(candidates) == 0:
+                continue
+            uv, _ = self.model.pixels(theta, stack.model, self.world[candidates], np.full(len(candidates), k), jacobian=False)
+            _, grad, ok = bilinear(stack, np.full(len(candidates), k), uv)
+            weight = np.linalg.norm(grad, axis=1) * ok
+            if weight.sum() <= 0:
+                continue
+            take = self.rng.choice(len(candidates), size=min(per_frame, int((weight > 0).sum())), replace=False, p=weight / weight.sum())
+            chosen = candidates[take]
+            # reference partner: the reference frame nearest in time that sees the point
+            pending = np.full(len(chosen), ref is not None)
+            for j in (np.argsort(np.abs(ref.stamps - cam.stamps[k])) if ref is not None else []):
+                if not pending.any():
+                    break
+                seen = self.ref_visible[j, chosen] & pending
+                if not seen.any():
+                    continue
+                ref_stack = ref.levels[factor]
+                uvb, _ = self.ref_model.pixels(np.zeros(7), ref_stack.model, self.world[chosen[seen]], np.full(int(seen.sum()), j), False)
+                value, _, okb = bilinear(ref_stack, np.full(int(seen.sum()), j), uvb)
+                hit = np.flatnonzero(seen)[okb]
+                for key, val in (("points", chosen[hit]), ("frame_a", np.full(len(hit), k)), ("own", np.zeros(len(hit), bool)),
+                                 ("frame_b", np.full(len(hit), j)), ("value_b", value[okb])):
+                    rows[key].append(val)
+                pending[hit] = False
+            # own partner: the nearest frame at least own_baseline of driving away (both sides when possible)
+            for partner in (self._partner(travelled, k, +1), self._partner(travelled, k, -1)):
+                if partner is None:
+                    continue
+                seen = seen_by[partner, chosen]
+                for key, val in (("points", chosen[seen]), ("frame_a", np.full(int(seen.sum()), k)), ("own", np.ones(int(seen.sum()), bool)),
+                                 ("frame_b", np.full(int(seen.sum()), partner)), ("value_b", np.zeros(int(seen.sum())))):
+                    rows[key].append(val)
+        if not rows["points"]:
+            return PairSet(np.zeros((0, 3)), *(np.zeros(0, dtype=t) for t in (np.int64, bool, np.int64, np.float64)))
+        cat = {k: np.concatenate(v) for k, v in rows.items()}
+        return PairSet(self.world[cat["points"]], cat["frame_a"], cat["own"], cat["frame_b"], cat["value_b"])
+
+    def _partner(self, travelled: np.ndarray, k: int, direction: int) -> Optional[int]:
+        far = np.flatnonzero(np.abs(travelled - travelled[k]) >= self.config.own_baseline)
+        far = far[far > k] if direction > 0 else far[far < k]
+        if len(far) == 0:
+            return None
+        return int(far.min() if direction > 0 else far.max())
+
+    # -- residuals --------------------------------------------------------------------------------------------
+    def residuals(self, theta: np.ndarray, pairs: PairSet, factor: int, jacobian: bool):
+        """``I_c(u_a) - I_b(u_b)`` per pair (0 where an observation leaves the image) and ``d r / d theta``."""
+        stack = self.camera.levels[factor]
+        uv_a, ju_a = self.model.pixels(theta, stack.model, pairs.points, pairs.frame_a, jacobian)
+        value_a, grad_a, ok = bilinear(stack, pairs.frame_a, uv_a)
+        value_b = pairs.value_b.copy()
+        jac = np.einsum("nc,ncp->np", grad_a, ju_a) if jacobian else None
+        own = np.flatnonzero(pairs.own)
+        if len(own):
+            uv_b, ju_b = self.model.pixels(theta, stack.model, pairs.points[own], pairs.frame_b[own], jacobian)
+            vb, grad_b, okb = bilinear(stack, pairs.frame_b[own], uv_b)
+            value_b[own] = vb
+            ok[own] &= okb
+            if jacobian:
+                jac[own] -= np.einsum("nc,ncp->np", grad_b, ju_b)
+        res = np.where(ok, value_a - value_b, 0.0)
+        if jacobian:
+            jac[~ok] = 0.0
+        return res, jac, ok
+
+
+def huber_costs(residuals: np.ndarray, scale: float) -> np.ndarray:
+    """Huber cost of each residual (``0.5 r^2`` inside ``scale``, linear beyond)."""
+    a = np.abs(residuals)
+    return np.where(a <= scale, 0.5 * a * a, scale * (a - 0.5 * scale))
+
+
+def robust_cost(residuals: np.ndarray, scale: float) -> float:
+    """Mean Huber cost of residuals (nan for none)."""
+    return float(np.mean(huber_costs(residuals, scale))) if len(residuals) else float("nan")
