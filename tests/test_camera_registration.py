@@ -125,6 +125,15 @@ def test_keeps_the_prior_when_the_images_do_not_match(rig_folder, tmp_path):
     assert result.calibration.time_offset["cam_front_right"] == start.time_offset["cam_front_right"]
 
 
+def test_a_fit_at_its_bound_is_a_runaway_and_keeps_the_prior(rig_folder):
+    """With the translation bounded to 1 cm the 50 cm lever-arm error drives the fit into the bound: prior kept, said why."""
+    rig, _, start = lidar_at_truth(rig_folder)
+    config = CameraRegistrationConfig(max_translation=0.01, outer_iterations=1, max_evaluations=5, split_half=False)
+    r = register_cameras(rig, start, config, sensors=["cam_front_right"], log=lambda s: None).cameras["cam_front_right"]
+    assert r.kept_prior and r.note.startswith("ran into its bound on ") and "(a runaway)" in r.note
+    np.testing.assert_array_equal(r.estimate, start.T_ref_sensor["cam_front_right"])
+
+
 def test_bad_input_one_line_errors(rig_folder, tmp_path):
     import cv2
 
@@ -147,5 +156,6 @@ def test_bad_input_one_line_errors(rig_folder, tmp_path):
 
     image = small / "images" / "cam_left" / "000003.png"
     cv2.imwrite(str(image), np.zeros((10, 12), dtype=np.uint8))
+    _, _, start = lidar_at_truth(rig_folder)
     with pytest.raises(CameraStageError, match=r"000003.png: size 12x10 is not rig.json's 96x72"):
         register_cameras(load_rig(small, check_files=False), start, CameraRegistrationConfig(), sensors=["cam_left"], log=lambda s: None)

@@ -36,6 +36,9 @@ from moisst_ns.stages.lidar_map import CameraStageError, NoOverlapError, Pinhole
 from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
 from moisst_ns.stages.uncertainty_math import least_squares_sigma
 
+PARAMETERS = ("roll", "pitch", "yaw", "x", "y", "z", "time_offset")
+"""The corrections in solver order (rotation about the camera's own axes, lever arm in the reference frame, delta)."""
+
 
 @dataclass
 class CameraRegistrationConfig:
@@ -79,6 +82,10 @@ class CameraRegistrationConfig:
     """Estimate the extrinsic (else it stays at the prior)."""
     estimate_time_offset: bool = True
     """Estimate the time offset (else it stays at the prior)."""
+    max_cost_ratio: float = 5.0
+    """A fit whose final cost is more than this many times the reference camera's own cost (its frames paired with
+    each other at their known poses: the scene's and images' own inconsistency) is a wrong minimum and keeps the prior
+    (measured: 1.1-2.7x at the truth with a LiDAR map, 4.1x with a feature map; 6-7x for the wrong minima seen)."""
     split_half: bool = True
     """Also solve the two halves of the drive and report sigma as at least their spread (``split_half_spread``; two
     more solves at full resolution)."""
@@ -117,13 +124,16 @@ class CameraResult:
     cost_estimate: float
     """The same pairs at the estimate."""
     kept_prior: bool
-    """The held-back cost was not significantly lower at the estimate: the prior is kept."""
+    """The prior is kept: the held-back cost was not significantly lower at the estimate, or ``note`` says why."""
     history: List[Dict[str, object]] = field(default_factory=list)
     wall_s: float = 0.0
     note: str = ""
-    """Why the camera kept its prior without a fit (it does not see the map), else empty."""
+    """Why the camera kept its prior other than the held-back check (it does not see the map, the fit ran into a
+    bound, or its cost stayed far above the reference camera's own), else empty."""
     sigma_formal: List[float] = field(default_factory=list)
     """The formal part of ``sigma`` (same order and units)."""
+    cost_ratio: float = 0.0
+    """Final cost over the reference camera's own (``reference_cost``); 0 when the reference is not a camera."""
     sigma_split: List[float] = field(default_factory=list)
     """The split-half part of ``sigma`` (``split_half_spread``; zeros when ``split_half`` is off)."""
 
@@ -221,8 +231,20 @@ def split_half_spread(problem: Registration, theta: np.ndarray, active: np.ndarr
     return np.abs(estimates[0] - estimates[1]) / 2
 
 
-def register_camera(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None] = print) -> CameraResult:
-    """Coarse-to-fine photometric registration of one camera against the map (see the module docstring)."""
+def reference_cost(traj: ReferenceTrajectory, world: np.ndarray, reference: CameraFrames, calibration: Calibration,
+                   config: CameraRegistrationConfig) -> float:
+    """The reference camera's own photometric cost: its frames paired with each other at their known poses, full
+    resolution. What a correctly registered camera can get down to on this scene and these images."""
+    own = Registration(traj, world, reference, None, calibration, config)
+    pairs = own.pairs(np.zeros(7), 1, config.points_per_frame)
+    res, _, ok = own.residuals(np.zeros(7), pairs, 1, jacobian=False)
+    return robust_cost(res[ok], config.huber)
+
+
+def register_camera(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None] = print,
+                    floor_cost: Optional[float] = None) -> CameraResult:
+    """Coarse-to-fine photometric registration of one camera against the map (see the module docstring);
+    ``floor_cost``: ``reference_cost`` of the rig (None: no wrong-minimum test)."""
     start = time.perf_counter()
     name = problem.camera.sensor
     active = np.array([config.estimate_extrinsic] * 6 + [config.estimate_time_offset])
@@ -252,11 +274,17 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
         formal[active] = least_squares_sigma(jac[ok][:, active] * weights[:, None], res[ok] * weights, pairs.frame_a[ok]).sigma
     spread = split_half_spread(problem, theta, active, factors[-1], config) if config.split_half and active.any() else np.zeros(7)
     cost_pri, cost_est, better = held_back_check(problem, theta, factors[-1], config)
-    kept = not better
+    bound = np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset]
+    at_bound = [PARAMETERS[i] for i in np.flatnonzero(active & (np.abs(theta) >= 0.999 * bound))]
+    ratio = history[-1]["cost"] / floor_cost if floor_cost else 0.0
+    kept = not better or bool(at_bound) or ratio > config.max_cost_ratio
     prior = problem.model.prior.numpy()
     pose, offset = (prior, problem.model.prior_offset) if kept else _corrected(prior, problem.model.prior_offset, theta)
+    note = f"ran into its bound on {', '.join(at_bound)} (a runaway)" if at_bound else ""
+    if ratio > config.max_cost_ratio:
+        note = f"its photometric cost at the estimate is {ratio:.1f}x the reference camera's own (a wrong minimum)"
     return CameraResult(name, prior, problem.model.prior_offset, pose, offset, np.fmax(formal, spread).tolist(), cost_pri, cost_est, kept,
-                        history, time.perf_counter() - start, sigma_formal=formal.tolist(), sigma_split=spread.tolist())
+                        history, time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist())
 
 
 @dataclass
@@ -309,13 +337,17 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     reference_name = rig.reference_sensor if rig.sensors[rig.reference_sensor].type == "camera" else None
     out = Calibration(calibration.reference_sensor, dict(calibration.T_ref_sensor), dict(calibration.time_offset))
     results = {}
+    floor = None
     for name in cameras:
         factors = pyramid_factors(min(widths + ([int(rig.sensors[reference_name].intrinsics["w"])] if reference_name else [])), config.min_width)
         camera = load_camera(rig, name, factors)
         reference = load_camera(rig, reference_name, factors) if reference_name else None
         problem = Registration(traj, world, camera, reference, calibration, config)
+        if reference is not None and floor is None:
+            floor = reference_cost(traj, world, reference, calibration, config)
+            log(f"[camera-registration] {reference_name}'s own photometric cost (its frames against each other): {floor:.4f}")
         try:
-            results[name] = register_camera(problem, config, log)
+            results[name] = register_camera(problem, config, log, floor)
         except NoOverlapError as err:
             prior = np.asarray(calibration.T_ref_sensor[name], dtype=np.float64)
             results[name] = CameraResult(name, prior, float(calibration.time_offset[name]), prior, float(calibration.time_offset[name]),

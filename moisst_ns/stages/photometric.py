@@ -157,7 +157,8 @@ class Registration:
 
     # -- residuals --------------------------------------------------------------------------------------------
     def residuals(self, theta: np.ndarray, pairs: PairSet, factor: int, jacobian: bool):
-        """``I_c(u_a) - I_b(u_b)`` per pair (0 where an observation leaves the image) and ``d r / d theta``."""
+        """``I_c(u_a) - I_b(u_b)`` per pair (0 where an observation leaves the image: a fit that gains by pushing its
+        pairs out of the image runs away and is caught by the bound and cost-ratio tests) and ``d r / d theta``."""
         stack = self.camera.levels[factor]
         uv_a, ju_a = self.model.pixels(theta, stack.model, pairs.points, pairs.frame_a, jacobian)
         value_a, grad_a, ok = bilinear(stack, pairs.frame_a, uv_a)
