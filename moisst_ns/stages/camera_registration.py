@@ -34,10 +34,13 @@ from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.stages.camera_map import FeatureMapConfig, feature_map
 from moisst_ns.stages.lidar_map import CameraStageError, NoOverlapError, PinholeModel, lidar_map, load_pyramid, pyramid_factors
 from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
+from moisst_ns.stages.observability import TEST_STEPS
 from moisst_ns.stages.uncertainty_math import least_squares_sigma
 
 PARAMETERS = ("roll", "pitch", "yaw", "x", "y", "z", "time_offset")
 """The corrections in solver order (rotation about the camera's own axes, lever arm in the reference frame, delta)."""
+TYPICAL_ERROR = np.asarray(TEST_STEPS)[[3, 4, 5, 0, 1, 2, 6]]
+"""``observability.TEST_STEPS`` (10 cm, 1 deg, 10 ms) in solver order (rad, m, s)."""
 
 
 @dataclass
@@ -86,6 +89,10 @@ class CameraRegistrationConfig:
     """A fit whose final cost is more than this many times the reference camera's own cost (its frames paired with
     each other at their known poses: the scene's and images' own inconsistency) is a wrong minimum and keeps the prior
     (measured: 1.1-2.7x at the truth with a LiDAR map, 4.1x with a feature map; 6-7x for the wrong minima seen)."""
+    max_split_half: float = 2.0
+    """A fit whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms) on any parameter is
+    not determined by the data and keeps the prior (measured on 96x72 rigs: 0.3-10 ms and 1-6 cm for fits that were
+    right, 58-63 cm and 63 ms for one that was 1.5 m off)."""
     split_half: bool = True
     """Also solve the two halves of the drive and report sigma as at least their spread (``split_half_spread``; two
     more solves at full resolution)."""
@@ -129,7 +136,7 @@ class CameraResult:
     wall_s: float = 0.0
     note: str = ""
     """Why the camera kept its prior other than the held-back check (it does not see the map, the fit ran into a
-    bound, or its cost stayed far above the reference camera's own), else empty."""
+    bound, the halves of the drive disagree, or its cost stayed far above the reference camera's own), else empty."""
     sigma_formal: List[float] = field(default_factory=list)
     """The formal part of ``sigma`` (same order and units)."""
     cost_ratio: float = 0.0
@@ -277,10 +284,13 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
     bound = np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset]
     at_bound = [PARAMETERS[i] for i in np.flatnonzero(active & (np.abs(theta) >= 0.999 * bound))]
     ratio = history[-1]["cost"] / floor_cost if floor_cost else 0.0
-    kept = not better or bool(at_bound) or ratio > config.max_cost_ratio
+    undetermined = [PARAMETERS[i] for i in np.flatnonzero(active & (spread > config.max_split_half * TYPICAL_ERROR))]
+    kept = not better or bool(at_bound) or ratio > config.max_cost_ratio or bool(undetermined)
     prior = problem.model.prior.numpy()
     pose, offset = (prior, problem.model.prior_offset) if kept else _corrected(prior, problem.model.prior_offset, theta)
     note = f"ran into its bound on {', '.join(at_bound)} (a runaway)" if at_bound else ""
+    if undetermined:
+        note = f"the two halves of the drive disagree on {', '.join(undetermined)} by more than {config.max_split_half:g}x a typical prior error"
     if ratio > config.max_cost_ratio:
         note = f"its photometric cost at the estimate is {ratio:.1f}x the reference camera's own (a wrong minimum)"
     return CameraResult(name, prior, problem.model.prior_offset, pose, offset, np.fmax(formal, spread).tolist(), cost_pri, cost_est, kept,
