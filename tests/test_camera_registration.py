@@ -135,6 +135,15 @@ def test_a_fit_at_its_bound_is_a_runaway_and_keeps_the_prior(rig_folder):
     np.testing.assert_array_equal(r.estimate, start.T_ref_sensor["cam_front_right"])
 
 
+def test_too_few_frames_keep_their_priors_without_a_map(rig_folder):
+    rig, _, start = lidar_at_truth(rig_folder)
+    result = register_cameras(rig, start, CameraRegistrationConfig(min_frames=21), log=lambda s: None)
+    assert result.map_points == 0 and set(result.cameras) == {"cam_front_right", "cam_left"}
+    for name, r in result.cameras.items():
+        assert r.kept_prior and r.note == "only 20 frames; the stage needs 21"
+        np.testing.assert_array_equal(result.calibration.T_ref_sensor[name], start.T_ref_sensor[name])
+
+
 def test_bad_input_one_line_errors(rig_folder, tmp_path):
     import cv2
 

@@ -85,6 +85,9 @@ class CameraRegistrationConfig:
     """Estimate the extrinsic (else it stays at the prior)."""
     estimate_time_offset: bool = True
     """Estimate the time offset (else it stays at the prior)."""
+    min_frames: int = 10
+    """A camera with fewer frames keeps its prior here (the NeRF calibrates it): each half of the drive must hold
+    enough frames for the split-half test (on a 6-frame 48x36 rig the fits ended worse than the priors)."""
     max_cost_ratio: float = 5.0
     """A fit whose final cost is more than this many times the reference camera's own cost (its frames paired with
     each other at their known poses: the scene's and images' own inconsistency) is a wrong minimum and keeps the prior
@@ -306,6 +309,13 @@ class CameraStageResult:
     map_points: int
 
 
+def _prior_kept(name: str, calibration: Calibration, why: str) -> CameraResult:
+    """The result of a camera the stage does not fit: its prior, sigma inf, ``why`` as the note."""
+    prior = np.asarray(calibration.T_ref_sensor[name], dtype=np.float64)
+    offset = float(calibration.time_offset[name])
+    return CameraResult(name, prior, offset, prior, offset, [float("inf")] * 7, float("nan"), float("nan"), True, note=why)
+
+
 def camera_sensors(rig: Rig) -> List[str]:
     """The rig's non-reference cameras (the ones this stage registers)."""
     return [n for n, s in rig.sensors.items() if s.type == "camera" and n != rig.reference_sensor]
@@ -338,6 +348,10 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         if name not in cameras:
             raise CameraStageError(f"{rig.root / 'rig.json'}: sensors.{name}: not a non-reference camera of this rig (cameras: {cameras})")
     cameras = list(sensors) if sensors else cameras
+    if all(len(rig.frames_of(n)) < config.min_frames for n in cameras):  # nothing to fit: no map needed
+        kept = {n: _prior_kept(n, calibration, f"only {len(rig.frames_of(n))} frames; the stage needs {config.min_frames}") for n in cameras}
+        log(f"[camera-registration] every camera has fewer than {config.min_frames} frames; they keep their priors here")
+        return CameraStageResult(Calibration(calibration.reference_sensor, dict(calibration.T_ref_sensor), dict(calibration.time_offset)), kept, 0)
     if any(s.type == "lidar" for s in rig.sensors.values()):
         world = lidar_map(rig, calibration, config.map_voxel, config.min_range, log)
     else:  # a camera-only rig: the reference camera's features, triangulated from its known poses
@@ -350,6 +364,11 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     floor = None
     for name in cameras:
         factors = pyramid_factors(min(widths + ([int(rig.sensors[reference_name].intrinsics["w"])] if reference_name else [])), config.min_width)
+        if len(rig.frames_of(name)) < config.min_frames:
+            results[name] = _prior_kept(name, calibration, f"only {len(rig.frames_of(name))} frames; the stage needs {config.min_frames}")
+            log(f"[camera-registration] {name}: {results[name].note}; it keeps its prior here")
+            out.T_ref_sensor[name], out.time_offset[name] = results[name].estimate, results[name].time_offset
+            continue
         camera = load_camera(rig, name, factors)
         reference = load_camera(rig, reference_name, factors) if reference_name else None
         problem = Registration(traj, world, camera, reference, calibration, config)
@@ -359,9 +378,7 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         try:
             results[name] = register_camera(problem, config, log, floor)
         except NoOverlapError as err:
-            prior = np.asarray(calibration.T_ref_sensor[name], dtype=np.float64)
-            results[name] = CameraResult(name, prior, float(calibration.time_offset[name]), prior, float(calibration.time_offset[name]),
-                                         [float("inf")] * 7, float("nan"), float("nan"), True, note=str(err))
+            results[name] = _prior_kept(name, calibration, str(err))
             log(f"[camera-registration] {name}: {err}; it keeps its prior here")
         r = results[name]
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
