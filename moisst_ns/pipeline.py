@@ -94,8 +94,10 @@ class CalibrateConfig:
     ``moisst_ns.quiet``)."""
     camera_registration: bool = True
     """After the LiDAR-first stage, register every camera against the calibrated LiDAR map (photometric consistency
-    of the map's points between the cameras' frames; no NeRF; into OUT/camera_registration). The NeRF then holds the
-    registered cameras there and trains the scene. --no-camera-registration: the NeRF calibrates the cameras."""
+    of the map's points between the cameras' frames; no NeRF; into OUT/camera_registration; without a LiDAR the map
+    is the reference camera's triangulated features). The NeRF then holds the registered cameras there and trains the
+    scene; a camera the stage could not trust keeps its prior and is calibrated by the NeRF.
+    --no-camera-registration: the NeRF calibrates every camera."""
     camera_refinement: bool = False
     """Let the NeRF move the registered cameras further (the paper's joint refinement) instead of holding them."""
     lidar_first: bool = True
