@@ -191,10 +191,11 @@ def append_history(path: Path, step: int, rows: Dict[str, Dict[str, float]]) -> 
 
 
 def stage_history_rows(stage: dict, truth) -> List[tuple]:
-    """``(step, {sensor: values})`` of the LiDAR-first stage's outer iterations, at steps -N..-1.
+    """``(step, {sensor: values})`` of a stage's outer iterations, at steps -N..-1 per sensor.
 
     Args:
-        stage: the stage summary (``lidar_first.json``).
+        stage: ``{"sensors": {name: {"history": [...]}}}``: a stage summary (``lidar_first.json``,
+            ``camera_registration.json``) or several stages' sensors merged.
         truth: the ground truth ``Calibration``, or None (then no error columns).
     """
     import torch
