@@ -369,12 +369,17 @@ def run_lidar_first(cfg: CalibrateConfig, rig, prior, truth, out: Path) -> Optio
         raise CalibrationError(f"{err} (--no-lidar-first skips the LiDAR-first stage)") from None
     stage = write_stage_outputs(result, config, prior, truth, out / "lidar_first")
     for name, entry in stage["sensors"].items():
-        line = f"LiDAR-first: {name} in {entry['wall_s']:.1f} s"
-        if truth is not None:
-            e = entry["errors_after"]
-            line += f": {e['translation_cm']:.2f} cm / {e['rotation_deg']:.3f} deg / {e['time_ms']:.2f} ms from the truth"
-        print(line + (f"; weakly observable: {', '.join(entry['weak'])}" if entry["weak"] else ""))
+        print(_stage_line("LiDAR-first", name, entry, truth) + (f"; weakly observable: {', '.join(entry['weak'])}" if entry["weak"] else ""))
     return stage
+
+
+def _stage_line(stage: str, name: str, entry: dict, truth) -> str:
+    """``<stage>: <sensor> in <s> s[: <errors> from the truth]``: a stage's one line per sensor."""
+    line = f"{stage}: {name} in {entry['wall_s']:.1f} s"
+    if truth is not None:
+        e = entry["errors_after"]
+        line += f": {e['translation_cm']:.2f} cm / {e['rotation_deg']:.3f} deg / {e['time_ms']:.2f} ms from the truth"
+    return line
 
 
 
@@ -403,10 +408,6 @@ def run_camera_registration(cfg: CalibrateConfig, rig, lidar_stage: Optional[dic
         raise CalibrationError(f"{err} (--no-camera-registration skips the camera-registration stage)") from None
     stage = write_stage_outputs(result, config, start, truth, out / "camera_registration")
     for name, entry in stage["sensors"].items():
-        line = f"camera registration: {name} in {entry['wall_s']:.1f} s"
-        if truth is not None:
-            e = entry["errors_after"]
-            line += f": {e['translation_cm']:.2f} cm / {e['rotation_deg']:.3f} deg / {e['time_ms']:.2f} ms from the truth"
         why = entry["note"] or "held-back cost not significantly lower than at the prior"
-        print(line + (f" ({why}: prior kept, the NeRF calibrates it)" if entry["kept_prior"] else ""))
+        print(_stage_line("camera registration", name, entry, truth) + (f" ({why}: prior kept, the NeRF calibrates it)" if entry["kept_prior"] else ""))
     return stage
