@@ -7,6 +7,8 @@ from typing import Any, List, Mapping, Sequence, Tuple
 import numpy as np
 from jaxtyping import Bool, Float, UInt8
 
+from moisst_ns.rig.distortion import opencv_distort
+
 
 COLORMAP = "turbo"
 """matplotlib colormap of the depth colouring (near = blue, far = red)."""
@@ -51,9 +53,7 @@ def project_points(
         # The distortion polynomial folds back far outside the image: only trust it near the image (50 % margin).
         u0, v0 = fx * x + cx, fy * y + cy
         valid = valid & (u0 > -0.5 * w) & (u0 < 1.5 * w) & (v0 > -0.5 * h) & (v0 < 1.5 * h)
-        r = x * x + y * y
-        d = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)))
-        x, y = x * d + 2.0 * p1 * x * y + p2 * (r + 2.0 * x * x), y * d + 2.0 * p2 * x * y + p1 * (r + 2.0 * y * y)
+        x, y = opencv_distort(x, y, k1, k2, k3, k4, p1, p2)
     u, v = fx * x + cx, fy * y + cy
     uv = np.stack([u, v], axis=-1)
     uv[~front] = np.nan

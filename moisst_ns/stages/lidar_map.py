@@ -17,6 +17,7 @@ import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
+from moisst_ns.rig.distortion import opencv_distort
 from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points
 
@@ -108,11 +109,8 @@ def project(model: PinholeModel, cam: Float[Tensor, "num 3"]) -> Tuple[Float[Ten
     z = cam[:, 2]
     safe = torch.where(z > 1e-6, z, torch.ones_like(z))
     x, y = cam[:, 0] / safe, cam[:, 1] / safe
-    k1, k2, k3, k4, p1, p2 = model.distortion
     if any(model.distortion):
-        r = x * x + y * y
-        d = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)))
-        x, y = x * d + 2.0 * p1 * x * y + p2 * (r + 2.0 * x * x), y * d + 2.0 * p2 * x * y + p1 * (r + 2.0 * y * y)
+        x, y = opencv_distort(x, y, *model.distortion)
     return torch.stack([model.fx * x + model.cx, model.fy * y + model.cy], dim=-1), z
 
 
