@@ -190,13 +190,18 @@ def held_back_check(problem: Registration, theta: np.ndarray, factor: int, confi
     return robust_cost(r_pri[both], config.huber), robust_cost(r_est[both], config.huber), bool(significant)
 
 
+def _bounds(config: CameraRegistrationConfig) -> Float[np.ndarray, "7"]:
+    """The bound on each correction, solver order (rad, m, s)."""
+    return np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset]
+
+
 def _solve(problem: Registration, theta: np.ndarray, active: np.ndarray, pairs: PairSet, factor: int, config: CameraRegistrationConfig):
     """One robust (Huber) trust-region solve of the active corrections from ``theta`` on fixed pairs.
 
     Returns:
         (the new corrections, residual evaluations used, (residuals, Jacobian, valid) at the solution).
     """
-    bound = np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset][active]
+    bound = _bounds(config)[active]
     scale = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005][active]
     cache: Dict[Tuple[bytes, bool], tuple] = {}
 
@@ -284,8 +289,7 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
         formal[active] = least_squares_sigma(jac[ok][:, active] * weights[:, None], res[ok] * weights, pairs.frame_a[ok]).sigma
     spread = split_half_spread(problem, theta, active, factors[-1], config) if config.split_half and active.any() else np.zeros(7)
     cost_pri, cost_est, better = held_back_check(problem, theta, factors[-1], config)
-    bound = np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset]
-    at_bound = [PARAMETERS[i] for i in np.flatnonzero(active & (np.abs(theta) >= 0.999 * bound))]
+    at_bound = [PARAMETERS[i] for i in np.flatnonzero(active & (np.abs(theta) >= 0.999 * _bounds(config)))]
     ratio = history[-1]["cost"] / floor_cost if floor_cost else 0.0
     undetermined = [PARAMETERS[i] for i in np.flatnonzero(active & (spread > config.max_split_half * TYPICAL_ERROR))]
     kept = not better or bool(at_bound) or ratio > config.max_cost_ratio or bool(undetermined)
@@ -348,33 +352,29 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         if name not in cameras:
             raise CameraStageError(f"{rig.root / 'rig.json'}: sensors.{name}: not a non-reference camera of this rig (cameras: {cameras})")
     cameras = list(sensors) if sensors else cameras
-    if all(len(rig.frames_of(n)) < config.min_frames for n in cameras):  # nothing to fit: no map needed
-        kept = {n: _prior_kept(n, calibration, f"only {len(rig.frames_of(n))} frames; the stage needs {config.min_frames}") for n in cameras}
-        log(f"[camera-registration] every camera has fewer than {config.min_frames} frames; they keep their priors here")
-        return CameraStageResult(Calibration(calibration.reference_sensor, dict(calibration.T_ref_sensor), dict(calibration.time_offset)), kept, 0)
+    out = Calibration(calibration.reference_sensor, dict(calibration.T_ref_sensor), dict(calibration.time_offset))
+    results = {n: _prior_kept(n, calibration, f"only {len(rig.frames_of(n))} frames; the stage needs {config.min_frames}")
+               for n in cameras if len(rig.frames_of(n)) < config.min_frames}
+    for name, r in results.items():
+        log(f"[camera-registration] {name}: {r.note}; it keeps its prior here")
+    if len(results) == len(cameras):  # nothing to fit: no map needed
+        return CameraStageResult(out, results, 0)
     if any(s.type == "lidar" for s in rig.sensors.values()):
         world = lidar_map(rig, calibration, config.map_voxel, config.min_range, log)
     else:  # a camera-only rig: the reference camera's features, triangulated from its known poses
         world = feature_map(rig, calibration, FeatureMapConfig(voxel=config.map_voxel), log)
     traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
-    widths = [int(rig.sensors[n].intrinsics["w"]) for n in cameras]
     reference_name = rig.reference_sensor if rig.sensors[rig.reference_sensor].type == "camera" else None
-    out = Calibration(calibration.reference_sensor, dict(calibration.T_ref_sensor), dict(calibration.time_offset))
-    results = {}
-    floor = None
+    widths = [int(rig.sensors[n].intrinsics["w"]) for n in cameras + ([reference_name] if reference_name else [])]
+    factors = pyramid_factors(min(widths), config.min_width)
+    reference = load_camera(rig, reference_name, factors) if reference_name else None
+    floor = reference_cost(traj, world, reference, calibration, config) if reference is not None else None
+    if floor is not None:
+        log(f"[camera-registration] {reference_name}'s own photometric cost (its frames against each other): {floor:.4f}")
     for name in cameras:
-        factors = pyramid_factors(min(widths + ([int(rig.sensors[reference_name].intrinsics["w"])] if reference_name else [])), config.min_width)
-        if len(rig.frames_of(name)) < config.min_frames:
-            results[name] = _prior_kept(name, calibration, f"only {len(rig.frames_of(name))} frames; the stage needs {config.min_frames}")
-            log(f"[camera-registration] {name}: {results[name].note}; it keeps its prior here")
-            out.T_ref_sensor[name], out.time_offset[name] = results[name].estimate, results[name].time_offset
+        if name in results:
             continue
-        camera = load_camera(rig, name, factors)
-        reference = load_camera(rig, reference_name, factors) if reference_name else None
-        problem = Registration(traj, world, camera, reference, calibration, config)
-        if reference is not None and floor is None:
-            floor = reference_cost(traj, world, reference, calibration, config)
-            log(f"[camera-registration] {reference_name}'s own photometric cost (its frames against each other): {floor:.4f}")
+        problem = Registration(traj, world, load_camera(rig, name, factors), reference, calibration, config)
         try:
             results[name] = register_camera(problem, config, log, floor)
         except NoOverlapError as err:
@@ -382,4 +382,4 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             log(f"[camera-registration] {name}: {err}; it keeps its prior here")
         r = results[name]
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
-    return CameraStageResult(out, results, len(world))
+    return CameraStageResult(out, {n: results[n] for n in cameras}, len(world))
