@@ -9,7 +9,6 @@ recorded from a ``moisst-calibrate`` output folder (its ``summary.json``) by ``m
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
@@ -29,15 +28,22 @@ def _cell(err: Optional[Dict[str, float]]) -> str:
     return " / ".join(_num(float(err[k])) for k in KEYS) if err else "-"
 
 
+def _read_json(path: Path) -> Any:
+    """``rig.format.read_json`` (one line naming the file, line and column of a syntax error) as a ``RunError``."""
+    from moisst_ns.rig.format import RigFormatError, read_json
+
+    try:
+        return read_json(path)
+    except RigFormatError as err:
+        raise RunError(str(err)) from None
+
+
 def load_figures(path: Path) -> Dict[str, Any]:
     """Read figures.json (one-line ``RunError`` naming the file on a missing or malformed file)."""
     path = Path(path)
     if not path.is_file():
         raise RunError(f"{path}: (file): not found")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise RunError(f"{path}: line {err.lineno}, column {err.colno}: invalid JSON: {err.msg}") from None
+    data = _read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("runs"), list) or not data["runs"]:
         raise RunError(f"{path}: runs: must be a non-empty list")
     for i, run in enumerate(data["runs"]):
@@ -56,10 +62,7 @@ def run_from_output(out: Path, label: str, source: Dict[str, Any]) -> Dict[str, 
     path = Path(out) / "summary.json"
     if not path.is_file():
         raise RunError(f"{path}: (file): not found (give the --output-dir of a finished moisst-calibrate)")
-    try:
-        summary = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise RunError(f"{path}: line {err.lineno}, column {err.colno}: invalid JSON: {err.msg}") from None
+    summary = _read_json(path)
     before, after = summary.get("errors_before"), summary.get("errors_after")
     if not isinstance(before, dict) or not isinstance(after, dict):
         raise RunError(f"{path}: errors_after: missing (the dataset had no ground_truth.json: no errors to record)")
