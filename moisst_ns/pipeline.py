@@ -266,7 +266,7 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     if stage is not None or cameras is not None:
         held = {**(stage or {}).get("sensors", {}), **{n: e for n, e in (cameras or {}).get("sensors", {}).items() if not e["kept_prior"]}}
         config.pipeline.datamanager.dataparser.prior_calibration = out / ("camera_registration" if cameras else "lidar_first") / "calibration.json"
-        model.camera_optimizer.frozen_sensors = tuple(n for n in held if cfg.camera_refinement is False or rig.sensors[n].type == "lidar")
+        model.camera_optimizer.frozen_sensors = tuple(n for n in held if not cfg.camera_refinement or rig.sensors[n].type == "lidar")
         if len(model.camera_optimizer.frozen_sensors) == len(rig.sensors) - 1:  # nothing left to calibrate in the NeRF
             fixed_calibration_scene(config)
         if cfg.registration_sensors is not None:
@@ -361,8 +361,7 @@ def run_lidar_first(cfg: CalibrateConfig, rig, prior, truth, out: Path) -> Optio
 
     if not lidar_sensors(rig):
         return None
-    config = LidarFirstConfig(max_time_offset=cfg.max_time_offset if cfg.max_time_offset is not None else 0.3, seed=cfg.seed,
-                              estimate_extrinsic=cfg.extrinsics, estimate_time_offset=cfg.time_offsets)
+    config = LidarFirstConfig(**_stage_options(cfg))
     try:
         result = calibrate_lidars(rig, config)
     except LidarFirstError as err:
@@ -382,6 +381,11 @@ def _stage_line(stage: str, name: str, entry: dict, truth) -> str:
     return line
 
 
+def _stage_options(cfg: CalibrateConfig) -> dict:
+    """The options every pre-NeRF stage takes from ``moisst-calibrate``'s: the time-offset bound (the stage's own
+    default when not given), the seed and which parameters to estimate."""
+    bound = {} if cfg.max_time_offset is None else {"max_time_offset": cfg.max_time_offset}
+    return dict(bound, seed=cfg.seed, estimate_extrinsic=cfg.extrinsics, estimate_time_offset=cfg.time_offsets)
 
 
 def run_camera_registration(cfg: CalibrateConfig, rig, lidar_stage: Optional[dict], truth, out: Path) -> Optional[dict]:
@@ -397,8 +401,7 @@ def run_camera_registration(cfg: CalibrateConfig, rig, lidar_stage: Optional[dic
     if not camera_sensors(rig) or not (has_lidar or rig.sensors[rig.reference_sensor].type == "camera"):
         return None
     start = load_calibration(out / "lidar_first" / "calibration.json") if lidar_stage is not None else Calibration.from_rig(rig)
-    config = CameraRegistrationConfig(max_time_offset=cfg.max_time_offset if cfg.max_time_offset is not None else 0.3, seed=cfg.seed,
-                                      estimate_extrinsic=cfg.extrinsics, estimate_time_offset=cfg.time_offsets)
+    config = CameraRegistrationConfig(**_stage_options(cfg))
     try:
         result = register_cameras(rig, start, config)
     except NoMapError as err:

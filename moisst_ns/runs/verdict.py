@@ -7,7 +7,8 @@ A sensor is flagged when
   ``max(DEPTH_MISMATCH_M, DEPTH_MISMATCH_FRACTION x median LiDAR depth)``. At the reference camera (known poses)
   it means the scene or the LiDAR is wrong: a LiDAR calibrated by the LiDAR-first stage (from its own scans, not
   from the scene) is not blamed, nor is a camera held at its camera-registration estimate (registered against the
-  LiDAR map); the other cameras are (they were registered against that scene); a LiDAR calibrated in the NeRF is. At another camera, with the reference's render in agreement, it flags that camera;
+  LiDAR map); the other cameras are (they were registered against that scene); a LiDAR calibrated in the NeRF is.
+  At another camera, with the reference's render in agreement, it flags that camera;
 * ``calibration.json`` says so: the optional per-sensor fields ``verdict`` ("converged" | "not converged" |
   "weakly observable"), ``weak`` (parameters), ``reason`` and ``uncertainty`` are shown when present.
 
