@@ -1,0 +1,82 @@
+"""The pre-NeRF stages alone on rigs with ground truth: LiDAR first (when the rig has a LiDAR), then the cameras
+against the map; prints every sensor's error and each camera's sigma, and writes the per-parameter errors and sigmas
+(x, y, z, roll, pitch, yaw, time offset; m, rad, s) to JSON for coverage tables (docs/method.md, docs/uncertainty.md).
+
+Usage: .venv/bin/python scripts/camera_stage.py RIG [RIG ...] [--json OUT.json] [--set points_per_frame=1500 ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import roma
+import torch
+
+from moisst_ns.rig.calibration import calibration_report_errors
+from moisst_ns.rig.format import Calibration, load_calibration, load_rig
+from moisst_ns.stages.camera_registration import CameraRegistrationConfig, register_cameras
+from moisst_ns.stages.lidar_first import LidarFirstConfig, calibrate_lidars, lidar_sensors
+
+TRUST_ORDER = [3, 4, 5, 0, 1, 2, 6]
+"""Solver order (rotation, lever arm, delta) to the trust order (lever arm, rotation, delta)."""
+
+
+def config_from(settings: list) -> CameraRegistrationConfig:
+    """``CameraRegistrationConfig`` with ``name=value`` overrides (typed like the field's default)."""
+    defaults = CameraRegistrationConfig()
+    fields = {f.name for f in dataclasses.fields(defaults)}
+    changes = {}
+    for item in settings:
+        name, _, value = item.partition("=")
+        if name not in fields:
+            raise SystemExit(f"--set {item}: no such CameraRegistrationConfig field")
+        kind = type(getattr(defaults, name))
+        changes[name] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+    return dataclasses.replace(defaults, **changes)
+
+
+def run(folder: Path, config: CameraRegistrationConfig) -> dict:
+    """Both stages on one rig; the per-camera record."""
+    rig, truth = load_rig(folder), load_calibration(folder / "ground_truth.json")
+    start = time.perf_counter()
+    calibration = calibrate_lidars(rig, LidarFirstConfig(), log=lambda s: None).calibration if lidar_sensors(rig) else Calibration.from_rig(rig)
+    lidar_s = time.perf_counter() - start
+    result = register_cameras(rig, calibration, config)
+    print(f"{folder}: LiDAR first {lidar_s:.1f} s, cameras {time.perf_counter() - start - lidar_s:.1f} s")
+    errors = calibration_report_errors(result.calibration, truth)
+    record = {}
+    for name, e in errors.items():
+        if name == truth.reference_sensor:
+            continue
+        line = f"  {name:<16} {e['translation_cm']:8.3f} cm {e['rotation_deg']:7.4f} deg {e['time_ms']:8.3f} ms"
+        r = result.cameras.get(name)
+        if r is not None:
+            true_T, est_T = np.asarray(truth.T_ref_sensor[name]), np.asarray(r.estimate)
+            rotation = roma.rotmat_to_rotvec(torch.from_numpy(est_T[:3, :3].T @ true_T[:3, :3])).numpy()
+            error = np.r_[est_T[:3, 3] - true_T[:3, 3], rotation, r.time_offset - truth.time_offset[name]]
+            record[name] = {"error": error.tolist(), "sigma": [r.sigma[j] if np.isfinite(r.sigma[j]) else None for j in TRUST_ORDER], "kept": r.kept_prior,
+                            "note": r.note, "wall_s": r.wall_s, "errors": e}
+            line += f"  {'prior kept: ' + (r.note or 'held-back check') if r.kept_prior else 'accepted'}"
+        print(line)
+    return record
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("rigs", type=Path, nargs="+")
+    parser.add_argument("--json", type=Path, default=None, help="write {rig: {camera: record}} here")
+    parser.add_argument("--set", nargs="*", default=[], help="CameraRegistrationConfig overrides, name=value")
+    args = parser.parse_args()
+    config = config_from(args.set)
+    records = {str(folder): run(folder, config) for folder in args.rigs}
+    if args.json:
+        args.json.write_text(json.dumps(records, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
