@@ -98,6 +98,10 @@ class CalibrateConfig:
     is the reference camera's triangulated features). The NeRF then holds the registered cameras there and trains the
     scene; a camera the stage could not trust keeps its prior and is calibrated by the NeRF.
     --no-camera-registration: the NeRF calibrates every camera."""
+    scene_steps: Optional[int] = None
+    """Training steps of the NeRF when the pre-NeRF stages hold every sensor (it then calibrates nothing and only
+    builds the scene for the viewer, the report and the uncertainty pass): --max-num-iterations when given, else a
+    third of the method's default (500 for ``moisst-lite``)."""
     camera_refinement: bool = False
     """Let the NeRF move the registered cameras further (the paper's joint refinement) instead of holding them."""
     lidar_first: bool = True
@@ -201,23 +205,22 @@ class CalibrationError(ValueError):
     """A calibration that cannot start or had to stop; the message is one line naming file/option and problem."""
 
 
-def run_calibration(cfg: CalibrateConfig) -> Path:
-    """Train, then write ``calibration.json``; returns the run's config.yml path."""
-    import torch
+def calibrate_trainer_config(cfg: CalibrateConfig, root: Path, out: Path, steps: Optional[int]):
+    """``moisst-calibrate``'s trainer config: the method's at ``steps`` with the command line's switches applied.
 
-    from moisst_ns.rig.calibration import calibration_report_errors
-    from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration, load_rig
+    Args:
+        cfg: the command line.
+        root: dataset folder.
+        out: output folder.
+        steps: run length (the method's default when None).
 
-    try:
-        rig = load_rig(cfg.dataset)
-        out = cfg.output_dir
-        check_output_dir(out, rig.root, create=True)
-    except (RigFormatError, RunError) as err:
-        raise CalibrationError(str(err)) from None
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
+    Returns:
+        The ``TrainerConfig``.
 
-    config = rig_trainer_config(cfg.method, cfg.max_num_iterations, rig.root, out, "run", cfg.seed)
+    Raises:
+        CalibrationError: options that leave nothing to calibrate.
+    """
+    config = rig_trainer_config(cfg.method, steps, root, out, "run", cfg.seed)
     model = config.pipeline.model
     apply_scene_switches(model, cfg.depth_loss_per_m2, cfg.line_of_sight_mult, cfg.lidar_far_margin)
     if not cfg.depth_loss:
@@ -245,6 +248,41 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     if cfg.save_every:
         config.steps_per_save = cfg.save_every
         config.save_only_latest_checkpoint = False
+    return config
+
+
+def scene_only_steps(cfg: CalibrateConfig) -> int:
+    """The NeRF's run length when the pre-NeRF stages hold every sensor (``--scene-steps``).
+
+    Args:
+        cfg: the command line.
+
+    Returns:
+        ``--scene-steps``, else ``--max-num-iterations``, else a third of the method's default.
+    """
+    from moisst_ns.method_configs import DEFAULT_ITERATIONS
+
+    return cfg.scene_steps or cfg.max_num_iterations or DEFAULT_ITERATIONS[cfg.method] // 3
+
+
+def run_calibration(cfg: CalibrateConfig) -> Path:
+    """Train, then write ``calibration.json``; returns the run's config.yml path."""
+    import torch
+
+    from moisst_ns.rig.calibration import calibration_report_errors
+    from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration, load_rig
+
+    try:
+        rig = load_rig(cfg.dataset)
+        out = cfg.output_dir
+        check_output_dir(out, rig.root, create=True)
+    except (RigFormatError, RunError) as err:
+        raise CalibrationError(str(err)) from None
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+
+    config = calibrate_trainer_config(cfg, rig.root, out, cfg.max_num_iterations)
+    model = config.pipeline.model
     checkpoints = config.get_checkpoint_dir()
     if cfg.resume:
         if not checkpoints.is_dir() or not any(checkpoints.glob("step-*.ckpt")):
@@ -265,10 +303,13 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
     held: dict = {}
     if stage is not None or cameras is not None:
         held = {**(stage or {}).get("sensors", {}), **{n: e for n, e in (cameras or {}).get("sensors", {}).items() if not e["kept_prior"]}}
-        config.pipeline.datamanager.dataparser.prior_calibration = out / ("camera_registration" if cameras else "lidar_first") / "calibration.json"
-        model.camera_optimizer.frozen_sensors = tuple(n for n in held if not cfg.camera_refinement or rig.sensors[n].type == "lidar")
-        if len(model.camera_optimizer.frozen_sensors) == len(rig.sensors) - 1:  # nothing left to calibrate in the NeRF
+        frozen = tuple(n for n in held if not cfg.camera_refinement or rig.sensors[n].type == "lidar")
+        if len(frozen) == len(rig.sensors) - 1:  # nothing left to calibrate in the NeRF: it only builds the scene
+            config = calibrate_trainer_config(cfg, rig.root, out, scene_only_steps(cfg))
+            config.load_dir, model = (checkpoints if cfg.resume else None), config.pipeline.model
             fixed_calibration_scene(config)
+        config.pipeline.datamanager.dataparser.prior_calibration = out / ("camera_registration" if cameras else "lidar_first") / "calibration.json"
+        model.camera_optimizer.frozen_sensors = frozen
         if cfg.registration_sensors is not None:
             model.registration_sensors = cfg.registration_sensors
         if cfg.lidar_scene:

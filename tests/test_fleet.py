@@ -173,6 +173,30 @@ def test_drives_own_uncertainty_replaces_the_spread():
     assert sigma_from_uncertainty({"translation_m": [0.01] * 3}) is None
 
 
+def test_rotation_sigma_is_turned_onto_the_reference_axes():
+    entry = {"translation_m": [0.01, 0.02, 0.03], "rotation_deg": [0.1, 0.2, 0.3], "time_offset_s": 0.001}
+    np.testing.assert_allclose(sigma_from_uncertainty(entry), [0.01, 0.02, 0.03, 0.1, 0.2, 0.3, 0.001])
+    quarter = Rotation.from_euler("z", 90, degrees=True).as_matrix()  # sensor x = reference y, sensor y = -reference x
+    np.testing.assert_allclose(sigma_from_uncertainty(entry, quarter), [0.01, 0.02, 0.03, 0.2, 0.1, 0.3, 0.001], atol=1e-12)
+    tilt = Rotation.from_euler("x", 45, degrees=True).as_matrix()  # sensor y, z share the reference y, z half and half
+    half = np.sqrt(0.5 * 0.2**2 + 0.5 * 0.3**2)
+    np.testing.assert_allclose(sigma_from_uncertainty(entry, tilt)[3:6], [0.1, half, half])
+
+
+def test_a_not_converged_sensor_is_left_out_of_its_drive(tmp_path):
+    from moisst_ns.fleet.report import load_estimate
+    from moisst_ns.rig.format import Calibration
+
+    path = tmp_path / "calibration.json"
+    Calibration("cam_a", {n: np.eye(4) for n in ("cam_a", "cam_b", "lidar")}, {"cam_a": 0.0, "cam_b": 0.01, "lidar": 0.0}).write(path)
+    raw = json.loads(path.read_text())
+    raw["sensors"]["cam_b"]["verdict"] = "not converged"
+    raw["sensors"]["lidar"]["verdict"] = "converged"
+    path.write_text(json.dumps(raw))
+    estimate, reference, left_out = load_estimate("d1", path)
+    assert reference == "cam_a" and left_out == ["cam_b"] and "cam_b" not in estimate.sensors and "lidar" in estimate.sensors
+
+
 def test_fleet_spread_is_per_sensor_pooled_over_vehicles():
     dt = [0.01, -0.01, 0.02, -0.02, 0.04, -0.04]  # cam_b: pairs of drives ±1, ±2, ±4 cm on every axis, 3 vehicles
     vehicles = {f"v{k}": [_drive("a", {"cam_b": (dt[2 * k], 0.0, 0.0), "lidar": (0.0001, 0.0, 0.0)}),

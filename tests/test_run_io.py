@@ -176,3 +176,13 @@ def test_time_offset_bound_is_reported(short_run, tmp_path, capsys):
         assert abs(offset - prior[name]["time_offset"]) <= 0.001 + 1e-9
     assert set(summary["hit_bounds"]) and all("time offset" in " ".join(v) for v in summary["hit_bounds"].values())
     assert "ran into its bound" in capsys.readouterr().out
+
+
+def test_scene_only_run_length_when_the_stages_hold_every_sensor():
+    from moisst_ns.pipeline import scene_only_steps
+
+    rig = Path("rig")
+    assert scene_only_steps(CalibrateConfig(dataset=rig)) == 500
+    assert scene_only_steps(CalibrateConfig(dataset=rig, method="moisst")) == 10000
+    assert scene_only_steps(CalibrateConfig(dataset=rig, max_num_iterations=600)) == 600
+    assert scene_only_steps(CalibrateConfig(dataset=rig, max_num_iterations=600, scene_steps=50)) == 50

@@ -244,12 +244,26 @@ def fleet_consensus(vehicles: Dict[str, List[DriveEstimate]], reference: Dict[st
     return {v: vehicle_consensus(d, reference[v], sigma, flag_sigma) for v, d in vehicles.items() if d}, sigma
 
 
-def sigma_from_uncertainty(entry: Optional[dict]) -> Optional[np.ndarray]:
-    """The seven σ of a calibration.json sensor's optional ``uncertainty`` object, or None when absent/incomplete."""
+def sigma_from_uncertainty(entry: Optional[dict], R_ref_sensor: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+    """The seven σ of a calibration.json sensor's optional ``uncertainty`` object, or None when absent/incomplete.
+
+    Args:
+        entry: the sensor's ``uncertainty`` object (``rotation_deg`` about the sensor's own axes).
+        R_ref_sensor: the sensor's rotation (3x3); when given, the rotation σ are turned onto the reference sensor's
+            axes as ``COMPONENTS`` has them (``ω_ref = R ω_sensor``: the diagonal of ``R diag(σ²) Rᵀ``).
+
+    Returns:
+        ``(σx, σy, σz [m], σ_rot_x, σ_rot_y, σ_rot_z [deg], σδ [s])``, or None.
+    """
     if not isinstance(entry, dict):
         return None
     try:
         out = np.array(list(entry["translation_m"]) + list(entry["rotation_deg"]) + [entry["time_offset_s"]], float)
     except (KeyError, TypeError, ValueError):
         return None
-    return out if out.shape == (7,) and np.all(np.isfinite(out)) and np.all(out > 0) else None
+    if out.shape != (7,) or not np.all(np.isfinite(out)) or not np.all(out > 0):
+        return None
+    if R_ref_sensor is not None:
+        R = np.asarray(R_ref_sensor, float)[:3, :3]
+        out[3:6] = np.sqrt(np.square(R) @ np.square(out[3:6]))
+    return out

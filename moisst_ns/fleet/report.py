@@ -19,14 +19,17 @@ UNIT = dict(zip(COMPONENTS, ("m", "m", "m", "deg", "deg", "deg", "s")))
 
 
 def load_estimate(drive_id: str, path: Path) -> tuple:
-    """A drive's calibration.json as ``(DriveEstimate, reference sensor, σ source)``; σ from its ``uncertainty``."""
+    """A drive's calibration.json as ``(DriveEstimate, reference sensor, sensors left out)``: σ from each sensor's
+    ``uncertainty``; a sensor whose verdict is ``not converged`` (its prior kept, or still moving) is no measurement
+    of the mount and is left out of the consensus."""
     from moisst_ns.rig.format import load_calibration
 
     cal = load_calibration(path)
     raw = json.loads(path.read_text())["sensors"]
-    sensors = {n: SensorEstimate(cal.T_ref_sensor[n], cal.time_offset[n], sigma_from_uncertainty(raw[n].get("uncertainty")))
-               for n in cal.T_ref_sensor}
-    return DriveEstimate(drive_id, sensors), cal.reference_sensor
+    left_out = sorted(n for n in cal.T_ref_sensor if raw[n].get("verdict") == "not converged")
+    sensors = {n: SensorEstimate(T, cal.time_offset[n], sigma_from_uncertainty(raw[n].get("uncertainty"), T[:3, :3]))
+               for n, T in cal.T_ref_sensor.items() if n not in left_out}
+    return DriveEstimate(drive_id, sensors), cal.reference_sensor, left_out
 
 
 def _comps(values) -> Dict[str, float]:
@@ -49,7 +52,7 @@ def write_reports(cfg, manifest: Manifest, rows: List[Dict[str, Any]], wall_s: f
     for row in rows:
         if row["status"] != "done":
             continue
-        estimate, ref = load_estimate(row["id"], drive_dir(out, by_id[row["id"]]) / "calibration.json")
+        estimate, ref, row["left_out"] = load_estimate(row["id"], drive_dir(out, by_id[row["id"]]) / "calibration.json")
         if reference.setdefault(row["vehicle"], ref) != ref:
             row["note"] = f"reference sensor {ref} is not the vehicle's {reference[row['vehicle']]}: left out of the consensus"
             continue
@@ -63,6 +66,8 @@ def write_reports(cfg, manifest: Manifest, rows: List[Dict[str, Any]], wall_s: f
         vc = consensus.get(row["vehicle"])
         if vc is None or row["status"] != "done":
             continue
+        for name in row.get("left_out", ()):
+            row["sensors"][name] = {"verdict": "not converged (left out)", "max_abs_z": None}
         for name, sc in vc.sensors.items():
             if row["id"] in sc.verdict:
                 z = sc.z[row["id"]]
@@ -107,7 +112,7 @@ def fleet_markdown(fleet: Dict[str, Any], plots: List[Path], out: Path) -> str:
              "| drive | vehicle | status | wall | sensors (verdict, largest deviation in σ) |", "|---|---|---|---|---|"]
     for row in fleet["drives"]:
         wall = f"{row['wall_s']:.0f} s" if row["wall_s"] is not None else "-"
-        sensors = "; ".join(f"{n} {s['verdict']} ({s['max_abs_z']:.1f} σ)" for n, s in row["sensors"].items())
+        sensors = "; ".join(f"{n} {s['verdict']}" + ("" if s["max_abs_z"] is None else f" ({s['max_abs_z']:.1f} σ)") for n, s in row["sensors"].items())
         status = row["status"] + (" (resumed)" if row["resumed"] else "") + (f": {row['reason']}" if row["reason"] else "")
         lines.append(f"| {row['id']} | {row['vehicle']} | {status} | {wall} | {sensors or row.get('note', '-')} |")
     for vehicle, block in fleet["vehicles"].items():
