@@ -315,6 +315,8 @@ def test_calibrate_runs_the_stage_first_and_holds_the_lidar(tiny_rigs, tmp_path)
     assert history["lidar"]["err_translation_cm"][0] > 10 and history["lidar"]["err_translation_cm"][stage_rows - 1] < 1.0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["lidar_first"]["lidar"]["errors_after"]["translation_cm"] < 1.0
+    # the stage's iterations open the history, but a held LiDAR never moved in the NeRF: not "still moving"
+    assert "lidar" not in summary["still_moving"] and summary["verdicts"]["lidar"].get("verdict") != "not converged"
 
     plain = tmp_path / "plain"
     run_calibration(CalibrateConfig(dataset=dataset, output_dir=plain, max_num_iterations=4, seed=0, threads=2, report=False, lidar_first=False))

@@ -32,6 +32,7 @@ from scipy.optimize import least_squares
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.stages.camera_map import FeatureMapConfig, feature_map
+from moisst_ns.stages.feature_start import FeatureStart, FeatureStartConfig, feature_start
 from moisst_ns.stages.lidar_map import CameraStageError, NoOverlapError, PinholeModel, lidar_map, load_pyramid, pyramid_factors
 from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
 from moisst_ns.stages.observability import TEST_STEPS
@@ -96,6 +97,10 @@ class CameraRegistrationConfig:
     """A fit whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms) on any parameter is
     not determined by the data and keeps the prior (measured on 96x72 rigs: 0.3-10 ms and 1-6 cm for fits that were
     right, 58-63 cm and 63 ms for one that was 1.5 m off)."""
+    feature_start: bool = True
+    """Start each camera from its pose fitted to SIFT features matched to the reference camera's map-anchored
+    keypoints (``feature_start``) where that fit holds, else from its prior (a side camera the reference never
+    overlaps); the photometric basin is about a pixel at the coarsest level, the features' is the whole image."""
     split_half: bool = True
     """Also solve the two halves of the drive and report sigma as at least their spread (``split_half_spread``; two
     more solves at full resolution)."""
@@ -146,6 +151,8 @@ class CameraResult:
     """Final cost over the reference camera's own (``reference_cost``); 0 when the reference is not a camera."""
     sigma_split: List[float] = field(default_factory=list)
     """The split-half part of ``sigma`` (``split_half_spread``; zeros when ``split_half`` is off)."""
+    start: str = "prior"
+    """Where the photometric solve started: ``prior`` or ``features`` (``feature_start``), with the reason."""
 
 
 def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
@@ -257,13 +264,16 @@ def reference_cost(traj: ReferenceTrajectory, world: np.ndarray, reference: Came
 
 
 def register_camera(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None] = print,
-                    floor_cost: Optional[float] = None) -> CameraResult:
+                    floor_cost: Optional[float] = None, initial: Optional[FeatureStart] = None) -> CameraResult:
     """Coarse-to-fine photometric registration of one camera against the map (see the module docstring);
-    ``floor_cost``: ``reference_cost`` of the rig (None: no wrong-minimum test)."""
+    ``floor_cost``: ``reference_cost`` of the rig (None: no wrong-minimum test); ``initial``: the feature start
+    (None or without ``theta``: start from the prior)."""
     start = time.perf_counter()
     name = problem.camera.sensor
     active = np.array([config.estimate_extrinsic] * 6 + [config.estimate_time_offset])
     theta, history = np.zeros(7), []
+    if initial is not None and initial.theta is not None:
+        theta = np.where(active, initial.theta, 0.0)
     factors = sorted(problem.camera.levels, reverse=True)
     last = None
     for factor in factors:
@@ -300,8 +310,10 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
         note = f"the two halves of the drive disagree on {', '.join(undetermined)} by more than {config.max_split_half:g}x a typical prior error"
     if ratio > config.max_cost_ratio:
         note = f"its photometric cost at the estimate is {ratio:.1f}x the reference camera's own (a wrong minimum)"
+    begun = "prior" if initial is None else (f"prior ({initial.note})" if initial.theta is None else
+                                             f"features ({initial.frames} frames, {initial.matches} matches, RMS {initial.rms_px:.2f} px)")
     return CameraResult(name, prior, problem.model.prior_offset, pose, offset, np.fmax(formal, spread).tolist(), cost_pri, cost_est, kept,
-                        history, time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist())
+                        history, time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun)
 
 
 @dataclass
@@ -375,8 +387,15 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         if name in results:
             continue
         problem = Registration(traj, world, load_camera(rig, name, factors), reference, calibration, config)
+        initial = None
+        if reference is not None and config.feature_start:
+            initial = feature_start(traj, world, problem.camera, reference, np.asarray(calibration.T_ref_sensor[reference_name], dtype=np.float64),
+                                    float(calibration.time_offset[reference_name]), problem.model.prior.numpy(), problem.model.prior_offset,
+                                    rig.sensors[name].intrinsics, _bounds(config), FeatureStartConfig(), log)
+            if initial.theta is None:
+                log(f"[camera-registration] {name}: {initial.note}")
         try:
-            results[name] = register_camera(problem, config, log, floor)
+            results[name] = register_camera(problem, config, log, floor, initial)
         except NoOverlapError as err:
             results[name] = _prior_kept(name, calibration, str(err))
             log(f"[camera-registration] {name}: {err}; it keeps its prior here")

@@ -42,7 +42,7 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                  "prior_time_offset": r.prior_offset, "sigma": [s if np.isfinite(s) else None for s in sigma],
                  "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step],
                  "loss_estimate": _finite(r.cost_estimate), "loss_prior": _finite(r.cost_prior), "kept_prior": r.kept_prior,
-                 "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "wall_s": r.wall_s, "history": r.history, **parts}
+                 "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history, **parts}
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry
@@ -64,7 +64,7 @@ def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationCon
         if s["note"]:
             md += [f"## {name}", "", f"Prior kept: {s['note']}.", ""]
             continue
-        md += [f"## {name}", "", f"{s['wall_s']:.1f} s; held-back cost {s['loss_prior']:.4f} at the prior, {s['loss_estimate']:.4f} at the "
+        md += [f"## {name}", "", f"Started from the {s['start']}; {s['wall_s']:.1f} s; held-back cost {s['loss_prior']:.4f} at the prior, {s['loss_estimate']:.4f} at the "
                f"estimate{' (prior kept)' if s['kept_prior'] else ''}.", "",
                "| | " + " | ".join(PARAMETERS) + " |", "|---|" + "---|" * len(PARAMETERS),
                "| sigma | " + " | ".join("inf" if v is None else f"{v * u:.3g} {unit}" for v, (u, unit) in zip(s["sigma"], UNITS)) + " |", ""]

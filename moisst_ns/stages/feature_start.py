@@ -1,0 +1,219 @@
+"""Where a camera's photometric registration starts: its pose from image features matched to the reference camera's.
+
+The photometric cost of ``camera_registration`` has a basin of about a pixel at its coarsest pyramid level; from the
+paper's perturbation (±50 cm, ±5° per axis) a small image starts ten and more pixels away and can settle in a wrong
+minimum. Features have no such basin. For every reference-camera frame, SIFT keypoints (``cv2``) take the 3D point of
+the map that the reference camera sees at that pixel (its pose is known: eq. 1-2 with the identity); every frame of
+the camera to register is matched (Lowe's ratio test) against the reference frames near it in time, and
+``cv2.solvePnPRansac`` gives that frame's pose and its inlier matches. The matches that survive are then fitted by
+the same projection as the photometric stage (eq. 1, 2, 12, ``photometric.CameraModel``): the 7 corrections
+(rotation, translation, time offset) minimise the reprojection error, robustly (``scipy.optimize.least_squares``,
+soft L1). A camera whose view the reference camera never shares (a side camera) finds too few frames and starts from
+its prior as before. No nerfstudio import.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, List, Optional, Tuple
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.stages.camera_map import _camera_matrix, _distortion
+from moisst_ns.stages.lidar_map import PinholeModel, project, visible, world_to_camera
+from moisst_ns.stages.photometric import CameraFrames, CameraModel
+
+
+@dataclass
+class FeatureStartConfig:
+    """Settings of the feature start."""
+
+    features: int = 1500
+    """SIFT features per frame."""
+    ratio: float = 0.8
+    """Lowe's ratio test."""
+    window_s: float = 0.35
+    """Reference frames within this time of a camera frame (at the prior offset) are its match candidates, seconds."""
+    ransac_fraction: float = 0.01
+    """RANSAC inlier threshold of ``solvePnPRansac`` as a fraction of the image width (at least 1.5 pixels)."""
+    min_inliers: int = 10
+    """A frame's pose counts when RANSAC keeps at least this many matches."""
+    min_frames: int = 5
+    """The start is used when at least this many frames have a pose and agree."""
+    agree_deg: float = 5.0
+    """Frames whose PnP rotations lie within this angle of each other agree, degrees."""
+    max_rms_px: float = 2.0
+    """...and the fit's inlier reprojection RMS is below this, pixels (full resolution)."""
+
+
+@dataclass
+class FeatureStart:
+    """The fit's outcome."""
+
+    theta: Optional[Float[np.ndarray, "7"]]
+    """Corrections to the prior (rad, rad, rad, m, m, m, s), or None: start from the prior."""
+    frames: int
+    """Frames with a PnP pose."""
+    matches: int
+    """Inlier matches in the fit."""
+    rms_px: float
+    """Inlier reprojection RMS at the fit, pixels (nan when there was no fit)."""
+    note: str
+    """One line: what happened."""
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    """A standardised image (any scale) as 8-bit grey for SIFT."""
+    lo, hi = np.percentile(image, [0.5, 99.5])
+    return np.clip((image - lo) / max(hi - lo, 1e-6) * 255.0, 0, 255).astype(np.uint8)
+
+
+def _sift(image: np.ndarray, features: int) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """SIFT keypoints ``(u, v)`` in the rig's pixel convention (centre of column ``i`` at ``i + 0.5``) and descriptors."""
+    import cv2
+
+    keypoints, descriptors = cv2.SIFT_create(nfeatures=features).detectAndCompute(_grey(image), None)
+    return np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2) + 0.5, descriptors
+
+
+def reference_landmarks(world: Float[np.ndarray, "num 3"], pose: Float[np.ndarray, "4 4"], image: np.ndarray, model: PinholeModel,
+                        features: int, max_depth: float = 40.0, max_depth_spread: float = 0.05) -> Tuple[Float[np.ndarray, "k 3"], Optional[np.ndarray]]:
+    """The reference frame's SIFT keypoints that land on the map, as world points with their descriptors.
+
+    Args:
+        world: map points, metres.
+        pose: the frame's ``world_T_camera``.
+        image: the frame (full resolution).
+        model: intrinsics (full resolution).
+        features: SIFT features per frame.
+        max_depth: map points farther than this are not used, metres.
+        max_depth_spread: a keypoint whose 3x3 pixels hold map points whose depths differ by more than this fraction
+            sits on a depth edge (its 3D point is ambiguous) and is dropped.
+
+    Returns:
+        (world points of the keypoints: the nearest visible map point within the keypoint's 3x3 pixels; their
+        descriptors), both empty when none lands on the map.
+    """
+    uv_kp, descriptors = _sift(image, features)
+    if descriptors is None or not len(uv_kp):
+        return np.zeros((0, 3)), None
+    pose_t = torch.from_numpy(np.asarray(pose, dtype=np.float64))[None].expand(len(world), 4, 4)
+    uv, depth = project(model, world_to_camera(pose_t, torch.from_numpy(world)))
+    uv, depth = uv.numpy(), depth.numpy()
+    seen = np.flatnonzero(visible(uv, depth, model, 4, 0.3, 0.03, max_depth))
+    w, h = model.width, model.height
+    nearest = np.full(w * h, -1, dtype=np.int64)
+    order = seen[np.argsort(-depth[seen])]  # far to near: the nearest point of a pixel is written last
+    nearest[(uv[order, 1].astype(np.int64)) * w + uv[order, 0].astype(np.int64)] = order
+    col, row = uv_kp[:, 0].astype(np.int64), uv_kp[:, 1].astype(np.int64)
+    cand = np.stack([nearest[np.clip(row + dy, 0, h - 1) * w + np.clip(col + dx, 0, w - 1)] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=1)
+    found = cand >= 0
+    d = depth[np.maximum(cand, 0)]
+    near, far = np.where(found, d, np.inf).min(axis=1), np.where(found, d, -np.inf).max(axis=1)
+    keep = np.isfinite(near) & (far <= (1.0 + max_depth_spread) * near)  # not on a depth edge: one surface under the keypoint
+    best = cand[np.arange(len(cand)), np.argmin(np.where(found, d, np.inf), axis=1)]
+    return world[best[keep]], descriptors[keep]
+
+
+def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], camera: CameraFrames, reference: CameraFrames,
+                  reference_pose: Float[np.ndarray, "4 4"], reference_offset: float, prior: Float[np.ndarray, "4 4"], prior_offset: float,
+                  intrinsics: dict, bounds: Float[np.ndarray, "7"], config: FeatureStartConfig,
+                  log: Callable[[str], None] = print) -> FeatureStart:
+    """The camera's 7 corrections from features matched to the reference camera's map-anchored keypoints.
+
+    Args:
+        traj: the reference trajectory.
+        world: the map, metres.
+        camera: the camera to register (its full-resolution level is used).
+        reference: the reference camera's frames.
+        reference_pose: the reference camera's extrinsic (normally the identity).
+        reference_offset: its time offset, seconds.
+        prior: the camera's prior extrinsic ``ref_T_c``.
+        prior_offset: its prior time offset, seconds.
+        intrinsics: the camera's rig.json intrinsics.
+        bounds: the stage's bounds on the corrections (|theta| <= bounds).
+        config: settings.
+        log: where progress lines go.
+
+    Returns:
+        The start (``theta`` None when the features do not determine it).
+    """
+    import cv2
+
+    name = camera.sensor
+    ref_model = CameraModel(traj, reference_pose, reference_offset, reference.stamps)
+    ref_poses = ref_model.poses(torch.zeros(7, dtype=torch.float64)).numpy()
+    ref_images = reference.levels[1].intensity
+    landmarks: List[Tuple[np.ndarray, Optional[np.ndarray]]] = [
+        reference_landmarks(world, ref_poses[j], ref_images[j], reference.model, config.features) for j in range(len(ref_poses))]
+    K, dist = _camera_matrix(intrinsics), _distortion(intrinsics)
+    threshold = max(1.5, config.ransac_fraction * camera.model.width)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    model = CameraModel(traj, prior, prior_offset, camera.stamps)
+    base = torch.from_numpy(np.asarray(traj(torch.from_numpy(camera.stamps + prior_offset)), dtype=np.float64)).numpy()
+    points, frames, observed, per_frame = [], [], [], []
+    for i, image in enumerate(camera.levels[1].intensity):
+        near = [j for j in range(len(ref_poses)) if abs(reference.stamps[j] + reference_offset - camera.stamps[i] - prior_offset) <= config.window_s
+                and landmarks[j][1] is not None and len(landmarks[j][0])]
+        uv_kp, descriptors = _sift(image, config.features)
+        if not near or descriptors is None or len(uv_kp) < 4:
+            continue
+        obj, img = [], []
+        for j in near:  # the ratio test within one reference frame: the same point in two frames is no ambiguity
+            pairs = matcher.knnMatch(descriptors, landmarks[j][1], k=2)
+            good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < config.ratio * m[1].distance]
+            obj += [landmarks[j][0][m.trainIdx] for m in good]
+            img += [uv_kp[m.queryIdx] for m in good]
+        if len(obj) < config.min_inliers:
+            continue
+        obj, img = np.asarray(obj), np.asarray(img)
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, img - 0.5, K, dist, reprojectionError=threshold, iterationsCount=300, confidence=0.999)
+        if not ok or inliers is None or len(inliers) < config.min_inliers:
+            continue
+        inl = inliers.ravel()
+        cam_T_world = np.eye(4)
+        cam_T_world[:3, :3], cam_T_world[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        per_frame.append(np.linalg.inv(base[i]) @ np.linalg.inv(cam_T_world))  # ref_T_c of this frame at the prior offset
+        points.append(obj[inl])
+        observed.append(img[inl])
+        frames.append(np.full(len(inl), i))
+    if len(per_frame) < config.min_frames:
+        return FeatureStart(None, len(per_frame), 0, float("nan"), f"{len(per_frame)} frames matched the reference camera's features "
+                            f"(the start needs {config.min_frames}): starting from the prior")
+    # a frame's RANSAC can still pick a wrong pose: start from the largest group of frames that agree on the rotation
+    rotations = Rotation.from_matrix(np.stack([T[:3, :3] for T in per_frame]))
+    apart = np.stack([(rotations[k].inv() * rotations).magnitude() for k in range(len(rotations))])
+    agree = apart[int(np.argmax((apart < np.deg2rad(config.agree_deg)).sum(axis=1)))] < np.deg2rad(config.agree_deg)
+    if agree.sum() < config.min_frames:
+        return FeatureStart(None, int(agree.sum()), 0, float("nan"), f"only {int(agree.sum())} of {len(per_frame)} frames' poses agree "
+                            f"within {config.agree_deg:g} deg (the start needs {config.min_frames}): starting from the prior")
+    start = np.zeros(7)
+    start[:3] = (Rotation.from_matrix(prior[:3, :3]).inv() * rotations[agree].mean()).as_rotvec()
+    start[3:6] = np.median(np.stack([T[:3, 3] for T, a in zip(per_frame, agree) if a]), axis=0) - prior[:3, 3]
+    start = np.clip(start, -bounds, bounds)
+    keep = np.flatnonzero(agree)
+    points, frames, observed = (np.concatenate([x[k] for k in keep]) for x in (points, frames, observed))
+    scale = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005]
+
+    def residuals(theta):
+        return (model.pixels(theta, camera.model, points, frames, jacobian=False)[0] - observed).ravel()
+
+    def jacobian(theta):
+        return model.pixels(theta, camera.model, points, frames, jacobian=True)[1].reshape(-1, 7)
+
+    fit = least_squares(residuals, start, jac=jacobian, method="trf", loss="soft_l1", f_scale=1.0, x_scale=scale,
+                        bounds=(-bounds, bounds), max_nfev=50)
+    err = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
+    rms = float(np.sqrt(np.mean(np.square(err[err < 3 * threshold])))) if np.any(err < 3 * threshold) else float("inf")
+    inliers = int((err < threshold).sum())
+    if rms > config.max_rms_px or inliers < config.min_inliers * config.min_frames:
+        return FeatureStart(None, int(agree.sum()), inliers, rms, f"the feature fit does not hold ({inliers} matches within "
+                            f"{threshold:.1f} px, RMS {rms:.2f} px): starting from the prior")
+    log(f"[camera-registration] {name}: feature start from {int(agree.sum())} frames, {inliers} matches, RMS {rms:.2f} px: "
+        f"{np.linalg.norm(fit.x[3:6]) * 100:.1f} cm / {np.rad2deg(np.linalg.norm(fit.x[:3])):.2f} deg / {fit.x[6] * 1000:.1f} ms from the prior")
+    return FeatureStart(fit.x, int(agree.sum()), inliers, rms, "")
