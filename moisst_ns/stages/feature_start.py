@@ -3,9 +3,11 @@
 The photometric cost of ``camera_registration`` has a basin of about a pixel at its coarsest pyramid level; from the
 paper's perturbation (±50 cm, ±5° per axis) a small image starts ten and more pixels away and can settle in a wrong
 minimum. Features have no such basin. For every reference-camera frame, SIFT keypoints (``cv2``) take the 3D point of
-the map that the reference camera sees at that pixel (its pose is known: eq. 1-2 with the identity); every frame of
-the camera to register is matched (Lowe's ratio test) against the reference frames near it in time, and
-``cv2.solvePnPRansac`` gives that frame's pose and its inlier matches. The matches that survive are then fitted by
+the map that the reference camera sees at that pixel (its pose is known: eq. 1-2 with the identity; keypoints on a
+depth edge are dropped); every frame of the camera to register is matched (Lowe's ratio test) against the reference
+frames near it in time. Placed in the vehicle frame at each frame's time (the prior offset), all frames' matches share
+one unknown pose, ``ref_T_c``: one ``cv2.solvePnPRansac`` over all of them gives it and the inlier matches (an offset
+error moves the points of a frame about alike, like a lever-arm error). The inliers are then fitted by
 the same projection as the photometric stage (eq. 1, 2, 12, ``photometric.CameraModel``): the 7 corrections
 (rotation, translation, time offset) minimise the reprojection error, robustly (``scipy.optimize.least_squares``,
 soft L1). A camera whose view the reference camera never shares (a side camera) finds too few frames and starts from
@@ -42,11 +44,9 @@ class FeatureStartConfig:
     ransac_fraction: float = 0.01
     """RANSAC inlier threshold of ``solvePnPRansac`` as a fraction of the image width (at least 1.5 pixels)."""
     min_inliers: int = 10
-    """A frame's pose counts when RANSAC keeps at least this many matches."""
+    """...and at least this many matches per such frame on average (RANSAC inliers)."""
     min_frames: int = 5
-    """The start is used when at least this many frames have a pose and agree."""
-    agree_deg: float = 5.0
-    """Frames whose PnP rotations lie within this angle of each other agree, degrees."""
+    """The start is used when the pose explains matches in at least this many frames..."""
     max_rms_px: float = 2.0
     """...and the fit's inlier reprojection RMS is below this, pixels (full resolution)."""
 
@@ -156,48 +156,42 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     model = CameraModel(traj, prior, prior_offset, camera.stamps)
     base = torch.from_numpy(np.asarray(traj(torch.from_numpy(camera.stamps + prior_offset)), dtype=np.float64)).numpy()
-    points, frames, observed, per_frame = [], [], [], []
+    points, frames, observed, local = [], [], [], []
     for i, image in enumerate(camera.levels[1].intensity):
         near = [j for j in range(len(ref_poses)) if abs(reference.stamps[j] + reference_offset - camera.stamps[i] - prior_offset) <= config.window_s
                 and landmarks[j][1] is not None and len(landmarks[j][0])]
         uv_kp, descriptors = _sift(image, config.features)
         if not near or descriptors is None or len(uv_kp) < 4:
             continue
-        obj, img = [], []
         for j in near:  # the ratio test within one reference frame: the same point in two frames is no ambiguity
-            pairs = matcher.knnMatch(descriptors, landmarks[j][1], k=2)
-            good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < config.ratio * m[1].distance]
-            obj += [landmarks[j][0][m.trainIdx] for m in good]
-            img += [uv_kp[m.queryIdx] for m in good]
-        if len(obj) < config.min_inliers:
-            continue
-        obj, img = np.asarray(obj), np.asarray(img)
-        ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, img - 0.5, K, dist, reprojectionError=threshold, iterationsCount=300, confidence=0.999)
-        if not ok or inliers is None or len(inliers) < config.min_inliers:
-            continue
-        inl = inliers.ravel()
-        cam_T_world = np.eye(4)
-        cam_T_world[:3, :3], cam_T_world[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
-        per_frame.append(np.linalg.inv(base[i]) @ np.linalg.inv(cam_T_world))  # ref_T_c of this frame at the prior offset
-        points.append(obj[inl])
-        observed.append(img[inl])
-        frames.append(np.full(len(inl), i))
-    if len(per_frame) < config.min_frames:
-        return FeatureStart(None, len(per_frame), 0, float("nan"), f"{len(per_frame)} frames matched the reference camera's features "
-                            f"(the start needs {config.min_frames}): starting from the prior")
-    # a frame's RANSAC can still pick a wrong pose: start from the largest group of frames that agree on the rotation
-    rotations = Rotation.from_matrix(np.stack([T[:3, :3] for T in per_frame]))
-    apart = np.stack([(rotations[k].inv() * rotations).magnitude() for k in range(len(rotations))])
-    agree = apart[int(np.argmax((apart < np.deg2rad(config.agree_deg)).sum(axis=1)))] < np.deg2rad(config.agree_deg)
-    if agree.sum() < config.min_frames:
-        return FeatureStart(None, int(agree.sum()), 0, float("nan"), f"only {int(agree.sum())} of {len(per_frame)} frames' poses agree "
-                            f"within {config.agree_deg:g} deg (the start needs {config.min_frames}): starting from the prior")
+            good = [m[0] for m in matcher.knnMatch(descriptors, landmarks[j][1], k=2) if len(m) == 2 and m[0].distance < config.ratio * m[1].distance]
+            if good:
+                world_pts = landmarks[j][0][[m.trainIdx for m in good]]
+                points.append(world_pts)
+                observed.append(uv_kp[[m.queryIdx for m in good]])
+                frames.append(np.full(len(good), i))
+                # the same points in the vehicle frame at this frame's time (prior offset): every frame's matches then
+                # share one unknown pose, ref_T_c (an offset error moves them all about alike: a lever-arm error)
+                inv = np.linalg.inv(base[i])
+                local.append(world_pts @ inv[:3, :3].T + inv[:3, 3])
+    if not points or len(np.unique(np.concatenate(frames))) < config.min_frames:
+        return FeatureStart(None, len(np.unique(np.concatenate(frames))) if frames else 0, 0, float("nan"),
+                            f"too few frames match the reference camera's features (the start needs {config.min_frames}): starting from the prior")
+    points, frames, observed, local = (np.concatenate(x) for x in (points, frames, observed, local))
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(local, observed - 0.5, K, dist, reprojectionError=threshold, iterationsCount=2000, confidence=0.999)
+    inl = inliers.ravel() if ok and inliers is not None else np.zeros(0, dtype=np.int64)
+    used = len(np.unique(frames[inl]))
+    if len(inl) < config.min_inliers * config.min_frames or used < config.min_frames:
+        return FeatureStart(None, used, len(inl), float("nan"), f"one pose explains only {len(inl)} matches in {used} frames "
+                            f"(the start needs {config.min_inliers * config.min_frames} in {config.min_frames}): starting from the prior")
+    c_T_ref = np.eye(4)
+    c_T_ref[:3, :3], c_T_ref[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    ref_T_c = np.linalg.inv(c_T_ref)
     start = np.zeros(7)
-    start[:3] = (Rotation.from_matrix(prior[:3, :3]).inv() * rotations[agree].mean()).as_rotvec()
-    start[3:6] = np.median(np.stack([T[:3, 3] for T, a in zip(per_frame, agree) if a]), axis=0) - prior[:3, 3]
+    start[:3] = Rotation.from_matrix(prior[:3, :3].T @ ref_T_c[:3, :3]).as_rotvec()
+    start[3:6] = ref_T_c[:3, 3] - prior[:3, 3]
     start = np.clip(start, -bounds, bounds)
-    keep = np.flatnonzero(agree)
-    points, frames, observed = (np.concatenate([x[k] for k in keep]) for x in (points, frames, observed))
+    points, frames, observed = points[inl], frames[inl], observed[inl]
     scale = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005]
 
     def residuals(theta):
@@ -212,8 +206,8 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
     rms = float(np.sqrt(np.mean(np.square(err[err < 3 * threshold])))) if np.any(err < 3 * threshold) else float("inf")
     inliers = int((err < threshold).sum())
     if rms > config.max_rms_px or inliers < config.min_inliers * config.min_frames:
-        return FeatureStart(None, int(agree.sum()), inliers, rms, f"the feature fit does not hold ({inliers} matches within "
+        return FeatureStart(None, used, inliers, rms, f"the feature fit does not hold ({inliers} matches within "
                             f"{threshold:.1f} px, RMS {rms:.2f} px): starting from the prior")
-    log(f"[camera-registration] {name}: feature start from {int(agree.sum())} frames, {inliers} matches, RMS {rms:.2f} px: "
+    log(f"[camera-registration] {name}: feature start from {used} frames, {inliers} matches, RMS {rms:.2f} px: "
         f"{np.linalg.norm(fit.x[3:6]) * 100:.1f} cm / {np.rad2deg(np.linalg.norm(fit.x[:3])):.2f} deg / {fit.x[6] * 1000:.1f} ms from the prior")
-    return FeatureStart(fit.x, int(agree.sum()), inliers, rms, "")
+    return FeatureStart(fit.x, used, inliers, rms, "")
