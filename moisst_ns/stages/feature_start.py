@@ -155,7 +155,7 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
     threshold = max(1.5, config.ransac_fraction * camera.model.width)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     model = CameraModel(traj, prior, prior_offset, camera.stamps)
-    base = torch.from_numpy(np.asarray(traj(torch.from_numpy(camera.stamps + prior_offset)), dtype=np.float64)).numpy()
+    base = traj(torch.from_numpy(camera.stamps + prior_offset)).numpy()  # world_T_ref at each frame (prior offset)
     points, frames, observed, local = [], [], [], []
     for i, image in enumerate(camera.levels[1].intensity):
         near = [j for j in range(len(ref_poses)) if abs(reference.stamps[j] + reference_offset - camera.stamps[i] - prior_offset) <= config.window_s
