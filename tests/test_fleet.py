@@ -260,7 +260,14 @@ def test_a_corrupted_drive_fails_alone_and_the_fleet_completes(tmp_path, tiny_dr
     saved = json.loads((out / "fleet.json").read_text())
     assert saved["vehicles"]["van"]["drives"] == ["van-1", "van-2"] and saved["vehicles"]["car"]["calibration"] is None
     assert (out / "van" / "calibration.json").is_file() and "| bad-1 | car | failed: " in (out / "fleet.md").read_text()
-    assert sorted(p.name for p in (out / "plots").iterdir()) == ["cam_front_right.png", "cam_left.png", "lidar.png"]
+    # 3 steps on 32x24 images: the cameras are "not converged" and left out; the LiDAR (its own stage) is combined
+    combined = {n for block in saved["vehicles"].values() for n in block["sensors"]}
+    for d in ("van-1", "van-2"):
+        verdicts = {n: e.get("verdict") for n, e in json.loads((out / "van" / d / "calibration.json").read_text())["sensors"].items()}
+        for name, entry in rows[d]["sensors"].items():
+            assert (entry["verdict"] == "not converged (left out)") == (verdicts[name] == "not converged"), (d, name, entry)
+    assert all(any(rows[d]["sensors"][n]["verdict"] != "not converged (left out)" for d in ("van-1", "van-2")) for n in combined)
+    assert "lidar" in combined and sorted(p.name for p in (out / "plots").iterdir()) == sorted(f"{n}.png" for n in combined)
     assert {name: tree_hash(tiny_drives / name) for name in ("van-1", "van-2")} == before  # datasets never written
 
 

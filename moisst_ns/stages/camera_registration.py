@@ -263,20 +263,13 @@ def reference_cost(traj: ReferenceTrajectory, world: np.ndarray, reference: Came
     return robust_cost(res[ok], config.huber)
 
 
-def register_camera(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None] = print,
-                    floor_cost: Optional[float] = None, initial: Optional[FeatureStart] = None) -> CameraResult:
-    """Coarse-to-fine photometric registration of one camera against the map (see the module docstring);
-    ``floor_cost``: ``reference_cost`` of the rig (None: no wrong-minimum test); ``initial``: the feature start
-    (None or without ``theta``: start from the prior)."""
+def _descend(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None], theta: np.ndarray) -> tuple:
+    """Coarse to fine from ``theta``: ``(theta, history, (residuals, Jacobian, valid, pairs) of the last solve)``."""
     start = time.perf_counter()
     name = problem.camera.sensor
     active = np.array([config.estimate_extrinsic] * 6 + [config.estimate_time_offset])
-    theta, history = np.zeros(7), []
-    if initial is not None and initial.theta is not None:
-        theta = np.where(active, initial.theta, 0.0)
-    factors = sorted(problem.camera.levels, reverse=True)
-    last = None
-    for factor in factors:
+    theta, history, last = np.where(active, theta, 0.0), [], None
+    for factor in sorted(problem.camera.levels, reverse=True):
         for outer in range(config.outer_iterations):
             pairs = problem.pairs(theta, factor, max(config.points_per_frame // factor, 200))
             if len(pairs.points) < 50:
@@ -292,13 +285,22 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
                 f"cost {history[-1]['cost']:.4f}, {evaluations} evaluations")
             if _pixel_motion(problem, theta, (theta - previous)[active], active, pairs, factor) < 0.1:
                 break
-    res, jac, ok, pairs = last
+    return theta, history, last
+
+
+def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost: Optional[float], descent: tuple, begun: str,
+             wall_s: float) -> CameraResult:
+    """The guards and sigma of one descent (``_descend``): the result, the prior where a guard says so."""
+    start = time.perf_counter()
+    theta, history, (res, jac, ok, pairs) = descent
+    active = np.array([config.estimate_extrinsic] * 6 + [config.estimate_time_offset])
+    finest = min(problem.camera.levels)
     formal = np.zeros(7)
     if active.any():
         weights = np.sqrt(np.minimum(1.0, config.huber / np.maximum(np.abs(res[ok]), 1e-12)))
         formal[active] = least_squares_sigma(jac[ok][:, active] * weights[:, None], res[ok] * weights, pairs.frame_a[ok]).sigma
-    spread = split_half_spread(problem, theta, active, factors[-1], config) if config.split_half and active.any() else np.zeros(7)
-    cost_pri, cost_est, better = held_back_check(problem, theta, factors[-1], config)
+    spread = split_half_spread(problem, theta, active, finest, config) if config.split_half and active.any() else np.zeros(7)
+    cost_pri, cost_est, better = held_back_check(problem, theta, finest, config)
     at_bound = [PARAMETERS[i] for i in np.flatnonzero(active & (np.abs(theta) >= 0.999 * _bounds(config)))]
     ratio = history[-1]["cost"] / floor_cost if floor_cost else 0.0
     undetermined = [PARAMETERS[i] for i in np.flatnonzero(active & (spread > config.max_split_half * TYPICAL_ERROR))]
@@ -310,24 +312,43 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
         note = f"the two halves of the drive disagree on {', '.join(undetermined)} by more than {config.max_split_half:g}x a typical prior error"
     if ratio > config.max_cost_ratio:
         note = f"its photometric cost at the estimate is {ratio:.1f}x the reference camera's own (a wrong minimum)"
-    begun = "prior" if initial is None else (f"prior ({initial.note})" if initial.theta is None else
-                                             f"features ({initial.frames} frames, {initial.matches} matches, RMS {initial.rms_px:.2f} px)")
-    return CameraResult(name, prior, problem.model.prior_offset, pose, offset, np.fmax(formal, spread).tolist(), cost_pri, cost_est, kept,
-                        history, time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun)
+    return CameraResult(problem.camera.sensor, prior, problem.model.prior_offset, pose, offset, np.fmax(formal, spread).tolist(), cost_pri,
+                        cost_est, kept, history, wall_s + time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun)
+
+
+def _started(initial: Optional[FeatureStart]) -> str:
+    return "prior" if initial is None else (f"prior ({initial.note})" if initial.theta is None else
+                                            f"features ({initial.frames} frames, {initial.matches} matches, RMS {initial.rms_px:.2f} px)")
+
+
+def register_camera(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None] = print,
+                    floor_cost: Optional[float] = None, initial: Optional[FeatureStart] = None) -> CameraResult:
+    """Coarse-to-fine photometric registration of one camera against the map (see the module docstring), then its
+    guards; ``floor_cost``: ``reference_cost`` of the rig (None: no wrong-minimum test); ``initial``: the feature
+    start (None or without ``theta``: start from the prior)."""
+    start = time.perf_counter()
+    theta0 = initial.theta if initial is not None and initial.theta is not None else np.zeros(7)
+    descent = _descend(problem, config, log, theta0)
+    return _guarded(problem, config, floor_cost, descent, _started(initial), time.perf_counter() - start)
 
 
 def _best_start(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None], floor_cost: Optional[float],
                 initial: Optional[FeatureStart]) -> CameraResult:
-    """``register_camera`` from the feature start and from the prior (two starts: either can end in a wrong minimum,
-    measured on 96x72 rigs); the fit that passes the guards with the lower final cost wins."""
-    fits = [register_camera(problem, config, log, floor_cost, initial)] if initial is not None and initial.theta is not None else []
-    fits.append(register_camera(problem, config, log, floor_cost, None if fits else initial))
-    best = min(fits, key=lambda r: (r.kept_prior, r.history[-1]["cost"] if r.history else np.inf))
-    if len(fits) > 1:
-        log(f"[camera-registration] {problem.camera.sensor}: final cost {fits[0].history[-1]['cost']:.4f} from the features"
-            f"{' (prior kept)' if fits[0].kept_prior else ''}, {fits[1].history[-1]['cost']:.4f} from the prior"
-            f"{' (prior kept)' if fits[1].kept_prior else ''}: the {best.start.split(' ')[0]} start wins")
-    return best
+    """Two descents, from the feature start and from the prior (either can end in a wrong minimum, measured on 96x72
+    rigs); the one with the lower final cost is guarded first, the other only if the guards keep the prior for it."""
+    if initial is None or initial.theta is None:
+        return register_camera(problem, config, log, floor_cost, initial)
+    start = time.perf_counter()
+    descents = [(_descend(problem, config, log, initial.theta), _started(initial)), (_descend(problem, config, log, np.zeros(7)), "prior")]
+    costs = [d[1][-1]["cost"] for d, _ in descents]
+    order = np.argsort(costs, kind="stable")
+    log(f"[camera-registration] {problem.camera.sensor}: final cost {costs[0]:.4f} from the features, {costs[1]:.4f} from the prior")
+    for k in order:
+        result = _guarded(problem, config, floor_cost, descents[k][0], descents[k][1], time.perf_counter() - start)
+        if not result.kept_prior:
+            break
+    log(f"[camera-registration] {problem.camera.sensor}: the {result.start.split(' ')[0]} start {'is kept' if not result.kept_prior else 'fails the guards too'}")
+    return result
 
 
 @dataclass
