@@ -8,6 +8,13 @@
 #         torch its C operators cannot load and `import torchvision` would fail: a .pth line then declares the two
 #         operators it needs to import (moisst_ns/torchvision_cpu.py).
 #   cuda: torch 2.14.1 + torchvision 0.29.1 from PyPI (CUDA build with its nvidia libraries, ~5.5 GB).
+#
+# Slim venv (issue 18): nerfstudio 1.1.5 goes in with --no-deps, beside the part of its dependencies that the code
+# paths we use import (scripts/nerfstudio-deps.txt: kept, and dropped with why); the rest of pyproject.toml's
+# dependencies are read from it. open3d: the CPU-only build `open3d-cpu` on x86_64 Linux (same `open3d` module,
+# ~320 MB instead of ~900 MB: we only use its CPU geometry), `open3d` elsewhere. `pip check` then reports only
+# those known omissions (nerfstudio's dropped packages, and `open3d` by that name), which this script filters.
+# An existing .venv keeps what it had; `rm -r .venv` for a slim one.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -29,7 +36,7 @@ esac
 
 PY=${PYTHON:-python3.11}
 STAMP=.venv/.moisst-installed
-WANT=$( (cat pyproject.toml scripts/install.sh; echo "$TORCH_KIND") | sha256sum | cut -d' ' -f1)
+WANT=$( (cat pyproject.toml scripts/install.sh scripts/nerfstudio-deps.txt; echo "$TORCH_KIND") | sha256sum | cut -d' ' -f1)
 if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ]; then
     echo "[install] .venv up to date"
     exit 0
@@ -53,14 +60,34 @@ fi
 
 SITE=$(.venv/bin/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
 .venv/bin/python -c "from importlib.metadata import version as v; print(f'torch=={v(\"torch\")}\ntorchvision=={v(\"torchvision\")}')" > .venv/moisst-constraints.txt
-echo "[install] moisst-ns + nerfstudio 1.1.5"
-quiet_pip -c .venv/moisst-constraints.txt -e ".[test]"
+# open3d: CPU-only wheels exist for x86_64 Linux only (PyPI's open3d-cpu); both write the module `open3d`, so
+# never both in one venv (a venv from before this change has the big one: swap it)
+if [ "$(uname -s)-$(uname -m)" = Linux-x86_64 ]; then
+    OPEN3D="open3d-cpu>=0.18"
+    .venv/bin/pip show -q open3d >/dev/null 2>&1 && .venv/bin/pip uninstall -q -y open3d
+else
+    OPEN3D="open3d>=0.17"
+fi
+# pyproject.toml's dependencies and test extra, less nerfstudio and open3d (installed as above and below)
+.venv/bin/python - > .venv/moisst-requirements.txt <<'EOF'
+import re, tomllib
+project = tomllib.load(open("pyproject.toml", "rb"))["project"]
+for dep in project["dependencies"] + project["optional-dependencies"]["test"]:
+    if re.match(r"(nerfstudio|open3d)\b", dep) is None:
+        print(dep)
+EOF
+echo "[install] moisst-ns + nerfstudio 1.1.5 (--no-deps: scripts/nerfstudio-deps.txt), $OPEN3D"
+quiet_pip -c .venv/moisst-constraints.txt -r .venv/moisst-requirements.txt -r scripts/nerfstudio-deps.txt "$OPEN3D"
+quiet_pip --no-deps "nerfstudio==1.1.5" -e .
+DROPPED=$(sed -n 's/^#-dropped \([^ ]*\).*/\1/p' scripts/nerfstudio-deps.txt | paste -sd'|')
+.venv/bin/pip check 2>/dev/null | grep -Ev "^(nerfstudio 1\.1\.5|moisst-ns [^ ]*) requires ($DROPPED|open3d), which is not installed\.$|^No broken requirements" \
+    | sed 's/^/[install] pip check: /' || true
 
 rm -f "$SITE/moisst_torchvision_cpu.pth"
 if .venv/bin/python -c "import moisst_ns.torchvision_cpu as m, sys; sys.exit(not m.needed())"; then
     echo "import sys; exec('try:\n import moisst_ns.torchvision_cpu as m; m.install()\nexcept ImportError: pass')" > "$SITE/moisst_torchvision_cpu.pth"
     echo "[install] CPU torch beside PyPI's CUDA torchvision: $SITE/moisst_torchvision_cpu.pth (moisst_ns/torchvision_cpu.py)"
 fi
-.venv/bin/python -W ignore::FutureWarning -c "import torchvision, moisst_ns.method_configs, open3d" >/dev/null
+.venv/bin/python -W ignore -c "import torchvision, open3d, moisst_ns.method_configs, nerfstudio.scripts.train, nerfstudio.scripts.exporter, nerfstudio.scripts.viewer.run_viewer" >/dev/null
 echo "$WANT" > "$STAMP"
 echo "[install] done: torch $(.venv/bin/python -c 'import torch; print(torch.__version__)'), $(du -sh .venv | cut -f1) in .venv"
