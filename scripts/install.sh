@@ -42,7 +42,8 @@ if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ]; then
     exit 0
 fi
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
-PIP=(.venv/bin/pip install -q --disable-pip-version-check)
+# --no-compile: no .pyc for the ~300 MB of modules never imported (Python writes those it imports, at first use)
+PIP=(.venv/bin/pip install -q --disable-pip-version-check --no-compile)
 quiet_pip() { "${PIP[@]}" "$@" 2>&1 | { grep -v "^WARNING: Location" || true; }; return "${PIPESTATUS[0]}"; }
 
 if ! .venv/bin/python -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '$TORCH')" 2>/dev/null; then
