@@ -9,7 +9,7 @@
 #         operators it needs to import (moisst_ns/torchvision_cpu.py).
 #   cuda: torch 2.14.1 + torchvision 0.29.1 from PyPI (CUDA build with its nvidia libraries, ~5.5 GB).
 #
-# Slim venv (issue 18): nerfstudio 1.1.5 goes in with --no-deps, beside the part of its dependencies that the code
+# Slim venv (issue 18): nerfstudio 1.1.5 (and viser) go in with --no-deps, beside the part of its dependencies that the code
 # paths we use import (scripts/nerfstudio-deps.txt: kept, and dropped with why); the rest of pyproject.toml's
 # dependencies are read from it. open3d: the CPU-only build `open3d-cpu` on x86_64 Linux (same `open3d` module,
 # ~320 MB instead of ~900 MB: we only use its CPU geometry), `open3d` elsewhere. `pip check` then reports only
@@ -79,9 +79,9 @@ for dep in project["dependencies"] + project["optional-dependencies"]["test"]:
 EOF
 echo "[install] moisst-ns + nerfstudio 1.1.5 (--no-deps: scripts/nerfstudio-deps.txt), $OPEN3D"
 quiet_pip -c .venv/moisst-constraints.txt -r .venv/moisst-requirements.txt -r scripts/nerfstudio-deps.txt "$OPEN3D"
-quiet_pip --no-deps "nerfstudio==1.1.5" -e .
+quiet_pip --no-deps "nerfstudio==1.1.5" "viser==0.2.7" -e .
 DROPPED=$(sed -n 's/^#-dropped \([^ ]*\).*/\1/p' scripts/nerfstudio-deps.txt | paste -sd'|')
-.venv/bin/pip check 2>/dev/null | grep -Ev "^(nerfstudio 1\.1\.5|moisst-ns [^ ]*) requires ($DROPPED|open3d), which is not installed\.$|^No broken requirements" \
+.venv/bin/pip check 2>/dev/null | grep -Ev "^(nerfstudio 1\.1\.5|viser 0\.2\.7|moisst-ns [^ ]*) requires ($DROPPED|open3d), which is not installed\.$|^No broken requirements" \
     | sed 's/^/[install] pip check: /' || true
 
 rm -f "$SITE/moisst_torchvision_cpu.pth"
@@ -91,4 +91,4 @@ if .venv/bin/python -c "import moisst_ns.torchvision_cpu as m, sys; sys.exit(not
 fi
 .venv/bin/python -W ignore -c "import torchvision, open3d, moisst_ns.method_configs, nerfstudio.scripts.train, nerfstudio.scripts.exporter, nerfstudio.scripts.viewer.run_viewer" >/dev/null
 echo "$WANT" > "$STAMP"
-echo "[install] done: torch $(.venv/bin/python -c 'import torch; print(torch.__version__)'), $(du -sh .venv | cut -f1) in .venv"
+echo "[install] done: torch $(.venv/bin/python -c 'from importlib.metadata import version; print(version("torch"))'), $(du -sh .venv | cut -f1) in .venv"
