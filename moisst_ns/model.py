@@ -81,6 +81,15 @@ def hash_level_weights(progress: float, num_levels: int, start_levels: float) ->
 
 
 
+def _detached_positions(density_fn):
+    """A proposal network's density function that sees its positions without their gradient."""
+
+    def density(positions: Tensor, times: Optional[Tensor] = None) -> Tensor:
+        return density_fn(positions.detach(), times)
+
+    return density
+
+
 @dataclass
 class MoisstModelConfig(NerfactoModelConfig):
     """nerfacto + MOISST rig calibration."""
@@ -142,6 +151,20 @@ class MoisstModelConfig(NerfactoModelConfig):
     hash_weight_decay_steps: int = 0
     """Step at which the hash grids' weight decay (set on the ``hash_grids`` optimiser) is removed (paper
     III-C.3: kept for the first epochs, then removed so finer detail can be learned)."""
+    compile_hash_grid: Literal["auto", "on", "off"] = "auto"
+    """``torch.compile`` the torch hash-grid encodings (``moisst_ns.compiled_grid``: 1.7x on a ``moisst-lite`` step
+    on 2 CPU cores, docs/benchmarks.md); it switches on torch's deterministic algorithms so that the same seed keeps
+    giving the same result. ``auto``: on for CPU runs of at least ``compile_min_steps`` steps (compiling costs
+    ~20-40 s once per process, less with inductor's on-disk cache); ``on``: whatever the length; ``off``: eager.
+    Without a C++ compiler, on CUDA, or when compiling fails, the encodings stay eager with a one-line note."""
+    compile_min_steps: int = 300
+    """Shortest run that ``compile_hash_grid="auto"`` compiles for (a cold compile costs about as much as it saves
+    in 300 ``moisst-lite`` steps)."""
+    detach_proposal_positions: bool = True
+    """The proposal networks see the sample positions detached from the calibration. They only choose where the
+    field samples (nerfacto's interlevel loss fits them to the field's weights); without this, that fitting loss
+    pulls on every sensor's extrinsic and time offset, and their backward computes a position gradient that is
+    ~40 % of a ``moisst`` step (docs/benchmarks.md). The field's samples keep their gradient."""
     schedule_steps: int = 0
     """Run length the step-valued schedules above (and the datamanager's phases and the optimisers' decays) were
     built for. When the trainer runs another length (``ns-train moisst-lite --max-num-iterations N``), every one is
@@ -173,6 +196,8 @@ class MoisstModel(NerfactoModel):
             else:
                 for enc in self._hash_encodings:
                     enc.register_forward_hook(self._mask_levels)
+        if self.config.detach_proposal_positions:
+            self.density_fns = [_detached_positions(fn) for fn in self.density_fns]
         self._step = 0
         # With a LiDAR as the reference sensor no camera's poses are known: no camera rays can build the scene alone,
         # so the detached registration phase is skipped and every sensor trains jointly (the paper's schedule).
@@ -205,6 +230,8 @@ class MoisstModel(NerfactoModel):
         if trainer is not None and self.config.schedule_steps > 0 and trainer.config.max_num_iterations != self.config.schedule_steps:
             rescale_schedules(trainer.config, self.config.schedule_steps, trainer.config.max_num_iterations)
         callbacks = super().get_training_callbacks(training_callback_attributes)
+        steps = trainer.config.max_num_iterations if trainer is not None else self.config.schedule_steps
+        self._compile_hash_grid(steps)
         callbacks.append(
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self._update_schedule, update_every_num_iters=1)
         )
@@ -228,6 +255,20 @@ class MoisstModel(NerfactoModel):
 
             callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], remove_hash_decay, update_every_num_iters=1))
         return callbacks
+
+    def _compile_hash_grid(self, steps: int) -> None:
+        """Compile the torch hash grids for a run of ``steps`` steps (``compile_hash_grid``); say so in one line."""
+        mode = self.config.compile_hash_grid
+        if mode == "off" or (mode == "auto" and (steps < self.config.compile_min_steps or self.device.type != "cpu")):
+            return
+        from moisst_ns.compiled_grid import compile_hash_encodings, hash_encodings
+
+        started = time.perf_counter()
+        why_not = compile_hash_encodings(hash_encodings(self), self.device)
+        if why_not is None:
+            CONSOLE.print(f"hash grids compiled (torch.compile, deterministic algorithms on) in {time.perf_counter() - started:.0f} s")
+        else:
+            CONSOLE.print(f"[yellow]hash grids stay eager: {why_not}")
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         hash_params = [p for enc in self._hash_encodings for p in enc.parameters()]

@@ -52,6 +52,9 @@ class BenchConfig:
     """Also copy benchmarks.md and the plot into the repository's docs/ (docs/benchmarks.md)."""
     threads: Optional[int] = None
     """torch CPU threads (torch's default when omitted)."""
+    speed: bool = False
+    """Measure only the speed table (s/step of moisst-lite and moisst, cameras only and with LiDAR, against stock
+    nerfacto with the same field and rays; a few minutes on 2 cores): writes OUT/speed.json and OUT/speed.md."""
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -206,6 +209,16 @@ def run_bench(cfg: BenchConfig) -> dict:
     """Run every case of the scenario file; write the JSON, Markdown and plot; return the result."""
     import torch
 
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    if cfg.speed:
+        from moisst_ns.bench.speed import run_speed, speed_markdown
+
+        result = run_speed(Path(cfg.out), machine())
+        table = speed_markdown(result)
+        (Path(cfg.out) / "speed.md").write_text(table + "\n")
+        print(table)
+        return result
     if cfg.scenarios is not None:
         path = cfg.scenarios
     else:

@@ -14,6 +14,8 @@ def main() -> None:
     cfg = tyro.cli(BenchConfig)
     if cfg.quick and cfg.full:
         fail("moisst-bench", "--quick and --full are exclusive")
+    if cfg.speed and (cfg.quick or cfg.full or cfg.scenarios is not None):
+        fail("moisst-bench", "--speed measures only the speed table: it takes no --quick, --full or --scenarios")
     quiet_third_party()  # known-harmless third-party warnings hidden; PYTHONWARNINGS=default shows everything
     try:
         run_bench(cfg)

@@ -1,0 +1,158 @@
+"""``moisst-bench --speed``: seconds per training step of each MOISST preset against stock nerfacto.
+
+Each trainer is set up for the preset's full run (1500 steps for ``moisst-lite``, 30000 for ``moisst``), so the
+step measured is the one a real run takes (its compile decision, schedules and phases), then trained from
+``start_fraction`` of the run (mid-registration for ``moisst-lite``): ``warmup_steps`` untimed (a graph met for the
+first time compiles there), then ``timed_steps`` timed. Stock nerfacto (``moisst_ns.bench.baseline``: nerfstudio's
+own model and data manager, no pose optimiser) gets the preset's field, sampling and camera rays per step. The
+MOISST preset runs cameras only (``lidar_rays_per_batch = 0``), then with the preset's LiDAR rays added.
+
+Set-up times (data loading, and compiling the hash grids) are reported apart from the per-step times.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Literal, Tuple
+
+PRESETS: Tuple[str, ...] = ("moisst-lite", "moisst")
+
+
+@dataclass(frozen=True)
+class SpeedPlan:
+    """How many steps each measurement takes (2 cores: ``moisst`` steps are ~20x ``moisst-lite``'s)."""
+
+    warmup_steps: int
+    """Untimed steps after set-up."""
+    timed_steps: int
+    """Timed steps; their mean is the figure."""
+    start_fraction: float = 0.3
+    """Fraction of the run the measured steps start at (``moisst-lite``: inside the registration phase)."""
+
+
+PLANS: Dict[str, SpeedPlan] = {"moisst-lite": SpeedPlan(warmup_steps=5, timed_steps=40), "moisst": SpeedPlan(warmup_steps=2, timed_steps=3)}
+
+
+def speed_rig(out: Path) -> Path:
+    """The rig the speed table runs on: ``moisst-synth`` street seed 0, 96x72, 20 frames, 3 cameras + LiDAR,
+    the paper's perturbation (rays per step, not image size, set the cost of a step). Generated once.
+
+    Args:
+        out: the benchmark's output folder (the rig goes to ``out/rigs/speed``).
+
+    Returns:
+        The rig folder.
+    """
+    from moisst_ns.datasets.synth import SynthConfig, make_rig
+
+    folder = out / "rigs" / "speed"
+    if not (folder / "rig.json").is_file():
+        shutil.rmtree(folder, ignore_errors=True)
+        make_rig(SynthConfig(out=folder, seed=0, layout="street", width=96, height=72, frames=20, perturb="paper"))
+    return folder
+
+
+def _trainer(kind: Literal["moisst", "nerfacto"], preset: str, rig: Path, out: Path, lidar: bool, seed: int = 0):
+    """A set-up nerfstudio trainer of the preset's full run; returns (trainer, steps of the run, set-up seconds)."""
+    from moisst_ns.bench.baseline import nerfacto_trainer_config
+    from moisst_ns.method_configs import DEFAULT_ITERATIONS
+    from moisst_ns.pipeline import CalibrateConfig, calibrate_trainer_config, seed_everything
+
+    steps = DEFAULT_ITERATIONS[preset]
+    shutil.rmtree(out, ignore_errors=True)
+    if kind == "moisst":
+        cfg = CalibrateConfig(dataset=rig, output_dir=out, method=preset, lidar_rays=None if lidar else 0, report=False, seed=seed)
+        config = calibrate_trainer_config(cfg, rig, out, steps)
+    else:
+        config = nerfacto_trainer_config(preset, steps, "off")
+        config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = rig
+        config.output_dir, config.experiment_name, config.timestamp = out, ".", "run"
+    config.vis = "tensorboard"
+    config.machine.seed = seed
+    seed_everything(seed)
+    started = time.perf_counter()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    return trainer, steps, time.perf_counter() - started
+
+
+def step_seconds(trainer, steps: int, plan: SpeedPlan) -> float:
+    """Mean wall seconds of ``plan.timed_steps`` training steps from ``plan.start_fraction`` of the run.
+
+    Args:
+        trainer: a set-up nerfstudio trainer.
+        steps: the run's length.
+        plan: warm-up and timed steps.
+
+    Returns:
+        Seconds per step.
+    """
+    from nerfstudio.engine.callbacks import TrainingCallbackLocation
+
+    start = int(plan.start_fraction * steps)
+    trainer.pipeline.train()
+    for i, step in enumerate(range(start, start + plan.warmup_steps + plan.timed_steps)):
+        if i == plan.warmup_steps:
+            started = time.perf_counter()
+        for location in (TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, None, TrainingCallbackLocation.AFTER_TRAIN_ITERATION):
+            if location is None:
+                trainer.train_iteration(step)  # as nerfstudio's Trainer.train: callbacks before and after each step
+                continue
+            for callback in trainer.callbacks:
+                callback.run_callback_at_location(step, location=location)
+    return (time.perf_counter() - started) / plan.timed_steps
+
+
+def run_speed(out: Path, machine: dict, presets: Tuple[str, ...] = PRESETS) -> dict:
+    """Measure the speed table and write ``out/speed.json``.
+
+    Args:
+        out: output folder.
+        machine: what it runs on (``moisst_ns.bench.run.machine``), recorded in the JSON.
+        presets: which presets to measure.
+
+    Returns:
+        ``{"presets": {preset: {"s_per_step", "nerfacto_s_per_step", "ratio", "s_per_step_lidar", "ratio_lidar",
+        "setup_s", "steps_timed"}}, "machine", "peak_rss_gb", "total_s"}``.
+    """
+    import torch
+
+    started = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    rig = speed_rig(out)
+    result: dict = {"presets": {}, "machine": machine, "rig": str(rig), "torch_threads": torch.get_num_threads()}
+    for preset in presets:
+        plan = PLANS[preset]
+        row: dict = {"steps_timed": plan.timed_steps, "setup_s": {}}
+        for name, kind, lidar in (("nerfacto", "nerfacto", False), ("cameras", "moisst", False), ("lidar", "moisst", True)):
+            print(f"[moisst-bench] speed: {preset}, {name}", flush=True)
+            trainer, steps, setup = _trainer(kind, preset, rig, out / "runs" / f"speed-{preset}-{name}", lidar)
+            row[name] = step_seconds(trainer, steps, plan)
+            row["setup_s"][name] = setup
+            del trainer
+        row = {"s_per_step": row["cameras"], "nerfacto_s_per_step": row["nerfacto"], "ratio": row["cameras"] / row["nerfacto"],
+               "s_per_step_lidar": row["lidar"], "ratio_lidar": row["lidar"] / row["nerfacto"], "setup_s": row["setup_s"],
+               "steps_timed": plan.timed_steps}
+        result["presets"][preset] = row
+        print(f"[moisst-bench] {preset}: {row['s_per_step']:.3f} s/step (nerfacto {row['nerfacto_s_per_step']:.3f}, "
+              f"{row['ratio']:.2f}x), with LiDAR {row['s_per_step_lidar']:.3f} s/step ({row['ratio_lidar']:.2f}x)", flush=True)
+    result["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    result["total_s"] = time.perf_counter() - started
+    (out / "speed.json").write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+def speed_markdown(result: dict) -> str:
+    """The speed table of ``run_speed``'s result as Markdown."""
+    lines = ["| preset | MOISST s/step (cameras) | nerfacto s/step (same field, same rays) | ratio | MOISST s/step with LiDAR | ratio with LiDAR | set-up s (nerfacto / cameras / LiDAR) |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for preset, r in result["presets"].items():
+        s = r["setup_s"]
+        lines.append(f"| {preset} ({r['steps_timed']} steps timed) | {r['s_per_step']:.3f} | {r['nerfacto_s_per_step']:.3f} | {r['ratio']:.2f} | "
+                     f"{r['s_per_step_lidar']:.3f} | {r['ratio_lidar']:.2f} | {s['nerfacto']:.0f} / {s['cameras']:.0f} / {s['lidar']:.0f} |")
+    return "\n".join(lines)
