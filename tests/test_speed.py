@@ -93,3 +93,17 @@ def test_speed_table_has_the_ratios_of_the_measured_figures():
     lines = speed_markdown(result).splitlines()
     assert len(lines) == 3
     assert lines[2] == "| moisst-lite (40 steps timed) | 0.150 | 0.300 | 0.50 | 0.180 | 0.60 | 4 / 30 / 6 |"
+
+
+def test_speed_section_survives_a_rewritten_benchmarks_page_and_takes_a_new_table():
+    from moisst_ns.bench.speed import keep_speed_block, with_speed_table
+
+    old_table = "| preset | MOISST s/step (cameras) | x |\n| --- | --- | --- |\n| moisst-lite | 0.2 | y |"
+    old = f"# Benchmarks\n\n<!-- speed -->\n## Speed\n\nProse.\n\n{old_table}\n\nMore prose.\n<!-- /speed -->\n## Table I\nold\n"
+    new = keep_speed_block(old, "# Benchmarks (quick)\n\n## Table I\nnew\n")
+    assert new == "# Benchmarks (quick)\n\n<!-- speed -->\n## Speed\n\nProse.\n\n" + old_table + "\n\nMore prose.\n<!-- /speed -->\n\n## Table I\nnew\n"
+    table = "| preset | MOISST s/step (cameras) | z |\n| --- | --- | --- |\n| moisst | 3.0 | w |"
+    updated = with_speed_table(new, table)
+    assert updated == new.replace(old_table, table)  # only the table changes, the prose stays
+    assert with_speed_table("# B\nbody\n", table) == f"# B\n\n<!-- speed -->\n## Speed\n\n{table}\n<!-- /speed -->\nbody\n"
+    assert keep_speed_block("no block", "# T\nx") == "# T\nx"

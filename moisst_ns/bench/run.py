@@ -31,6 +31,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from moisst_ns.bench.speed import keep_speed_block, with_speed_table
 from moisst_ns.bench.scenarios import ERR_KEYS, HIST_KEYS, LOSS_SWITCHES, OPTIMISE, BenchError, _seeds, load_scenarios, packaged_scenarios
 from moisst_ns.bench.tables import markdown, merge_frame_errors, plot_error_vs_time, pooled, stage_errors, time_to_target
 
@@ -217,6 +218,9 @@ def run_bench(cfg: BenchConfig) -> dict:
         result = run_speed(Path(cfg.out), machine())
         table = speed_markdown(result)
         (Path(cfg.out) / "speed.md").write_text(table + "\n")
+        if cfg.docs:
+            docs = REPO / "docs" / "benchmarks.md"
+            docs.write_text(with_speed_table(docs.read_text() if docs.is_file() else "# Benchmarks\n", table))
         print(table)
         return result
     if cfg.scenarios is not None:
@@ -310,7 +314,8 @@ def run_bench(cfg: BenchConfig) -> dict:
     (out / "benchmarks.md").write_text(md)
     if cfg.docs:
         (REPO / "docs").mkdir(exist_ok=True)
-        (REPO / "docs" / "benchmarks.md").write_text(md)
+        docs = REPO / "docs" / "benchmarks.md"
+        (REPO / "docs" / "benchmarks.md").write_text(keep_speed_block(docs.read_text() if docs.is_file() else "", md))
         shutil.copyfile(out / "bench_error_vs_time.png", REPO / "docs" / "bench_error_vs_time.png")
     print(md)
     return result

@@ -156,3 +156,37 @@ def speed_markdown(result: dict) -> str:
         lines.append(f"| {preset} ({r['steps_timed']} steps timed) | {r['s_per_step']:.3f} | {r['nerfacto_s_per_step']:.3f} | {r['ratio']:.2f} | "
                      f"{r['s_per_step_lidar']:.3f} | {r['ratio_lidar']:.2f} | {s['nerfacto']:.0f} / {s['cameras']:.0f} / {s['lidar']:.0f} |")
     return "\n".join(lines)
+
+
+SPEED_BLOCK = ("<!-- speed -->", "<!-- /speed -->")
+"""Markers of docs/benchmarks.md's speed section (``--speed --docs`` writes its table there; ``--docs`` keeps it)."""
+
+
+def keep_speed_block(old: str, new: str) -> str:
+    """``new`` (a rewritten benchmarks page) with ``old``'s speed section carried over under its title line."""
+    start, end = old.find(SPEED_BLOCK[0]), old.find(SPEED_BLOCK[1])
+    if start < 0 or end < 0:
+        return new
+    title_end = new.find("\n") + 1
+    return new[:title_end] + "\n" + old[start:end + len(SPEED_BLOCK[1])] + "\n" + new[title_end:]
+
+
+def with_speed_table(page: str, table: str) -> str:
+    """``page`` whose speed table (the first Markdown table inside the speed section) is ``table``; a page without
+    a speed section gets one under its title line."""
+    start, end = page.find(SPEED_BLOCK[0]), page.find(SPEED_BLOCK[1])
+    if start < 0 or end < 0:
+        title_end = page.find("\n") + 1
+        return page[:title_end] + f"\n{SPEED_BLOCK[0]}\n## Speed\n\n{table}\n{SPEED_BLOCK[1]}\n" + page[title_end:]
+    block = page[start:end]
+    lines = block.split("\n")
+    rows = [i for i, line in enumerate(lines) if line.startswith("| preset | MOISST s/step")]
+    if not rows:
+        lines.insert(len(lines), table + "\n")
+    else:
+        first = rows[0]
+        last = first
+        while last + 1 < len(lines) and lines[last + 1].startswith("|"):
+            last += 1
+        lines[first:last + 1] = table.split("\n")
+    return page[:start] + "\n".join(lines) + page[end:]
