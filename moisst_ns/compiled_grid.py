@@ -18,7 +18,7 @@ Two guarantees are kept:
 from __future__ import annotations
 
 import shutil
-from typing import Callable, List, Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import torch
 from jaxtyping import Float
@@ -40,20 +40,6 @@ def cpp_compiler() -> Optional[str]:
         if path is not None:
             return path
     return None
-
-
-def hash_encodings(module: nn.Module) -> List[nn.Module]:
-    """Every nerfstudio ``HashEncoding`` in ``module`` that runs its torch implementation (no tcnn).
-
-    Args:
-        module: a model.
-
-    Returns:
-        The encodings, in ``module.modules()`` order.
-    """
-    from nerfstudio.field_components.encodings import HashEncoding
-
-    return [m for m in module.modules() if isinstance(m, HashEncoding) and m.tcnn_encoding is None]
 
 
 def _compiled_forward(encoding: nn.Module) -> Callable[[Tensor], Tensor]:
@@ -79,7 +65,7 @@ def compile_hash_encodings(encodings: Sequence[nn.Module], device: torch.device 
     """Replace each encoding's torch forward by its compiled form, or leave all of them eager.
 
     Args:
-        encodings: nerfstudio ``HashEncoding`` modules without tcnn (``hash_encodings``).
+        encodings: nerfstudio ``HashEncoding`` modules without tcnn (the model's own list, ``MoisstModel._hash_encodings``).
         device: where the encodings' tables are (the probe runs there).
 
     Returns:

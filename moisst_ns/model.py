@@ -261,10 +261,10 @@ class MoisstModel(NerfactoModel):
         mode = self.config.compile_hash_grid
         if mode == "off" or (mode == "auto" and (steps < self.config.compile_min_steps or self.device.type != "cpu")):
             return
-        from moisst_ns.compiled_grid import compile_hash_encodings, hash_encodings
+        from moisst_ns.compiled_grid import compile_hash_encodings
 
         started = time.perf_counter()
-        why_not = compile_hash_encodings(hash_encodings(self), self.device)
+        why_not = compile_hash_encodings([e for e in self._hash_encodings if e.tcnn_encoding is None], self.device)
         if why_not is None:
             CONSOLE.print(f"hash grids compiled (torch.compile, deterministic algorithms on) in {time.perf_counter() - started:.0f} s")
         else:
