@@ -33,6 +33,7 @@ from moisst_ns.data.layout import RayLayout
 from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss, line_of_sight_loss
 from moisst_ns.schedules import rescale_schedules
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
+from moisst_ns.contraction import use_linf_contraction
 
 allow_numpy_in_checkpoints()  # nerfstudio 1.1.5 checkpoints under torch >= 2.6 (moisst_ns.compat)
 
@@ -73,12 +74,6 @@ def hash_level_weights(progress: float, num_levels: int, start_levels: float) ->
     alpha = start_levels + min(max(progress, 0.0), 1.0) * (num_levels - start_levels)
     k = torch.arange(num_levels, dtype=torch.float32)
     return (1.0 - torch.cos(math.pi * torch.clamp(alpha - k, 0.0, 1.0))) / 2.0
-
-
-
-
-
-
 
 
 def _detached_positions(density_fn):
@@ -180,6 +175,7 @@ class MoisstModel(NerfactoModel):
     def populate_modules(self):
         with mock.patch("torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity", _NoLPIPS):
             super().populate_modules()
+        use_linf_contraction(self)  # the same contraction without torch's slow CPU max norm (moisst_ns.contraction)
         metadata = self.kwargs.get("metadata") or {}
         rig = metadata.get("moisst_rig")
         if rig is None:

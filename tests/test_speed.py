@@ -1,5 +1,6 @@
-"""A faster step: the compiled hash grid (same values, same gradients, deterministic, clean fallback), the proposal
-networks' detached positions, and ``moisst-bench --speed``'s table."""
+"""A faster step: the compiled hash grid (same values, same gradients, deterministic, clean fallback), the L-inf
+scene contraction without torch's max norm (bit-identical), the proposal networks' detached positions, and
+``moisst-bench --speed``'s table."""
 
 import pytest
 import torch
@@ -7,6 +8,7 @@ from nerfstudio.field_components.encodings import HashEncoding
 
 from moisst_ns import compiled_grid
 from moisst_ns.bench.speed import speed_markdown
+from moisst_ns.contraction import LinfSceneContraction, use_linf_contraction
 from moisst_ns.model import _detached_positions
 
 
@@ -75,6 +77,40 @@ def test_hash_grid_compile_failure_falls_back_to_eager(monkeypatch):
     assert torch.are_deterministic_algorithms_enabled() == deterministic
     x = torch.rand(10, 3)
     assert encodings[0](x).shape == (10, 8)
+
+
+def test_linf_contraction_equals_nerfstudios_bit_for_bit_ties_included():
+    from nerfstudio.field_components.spatial_distortions import SceneContraction
+
+    x = torch.randn(4000, 3, generator=torch.Generator().manual_seed(0)) * 2
+    x[:8] = torch.tensor([1.5, -1.5, 0.3])  # two components tie for the max: the gradient is shared between them
+    x[8:16] = torch.tensor([2.0, 2.0, -2.0])
+    x[16] = torch.tensor([1.0, 0.5, 0.2])  # on the unit cube's face
+    assert bool((x.abs().amax(-1) < 1).any()) and bool((x.abs().amax(-1) > 1).any())
+    g = torch.randn(4000, 3, generator=torch.Generator().manual_seed(1))
+    results = []
+    for contraction in (SceneContraction(order=float("inf")), LinfSceneContraction()):
+        xx = x.clone().requires_grad_(True)
+        y = contraction(xx)
+        (y * g).sum().backward()
+        results.append((y.detach(), xx.grad))
+    assert torch.equal(results[0][0], results[1][0]) and torch.equal(results[0][1], results[1][1])
+    assert float(results[1][0].abs().max()) < 2.0
+
+
+def test_model_fields_use_the_linf_contraction_and_other_contractions_are_left_alone():
+    from nerfstudio.field_components.spatial_distortions import SceneContraction
+
+    class Holder(torch.nn.Module):
+        def __init__(self, distortion):
+            super().__init__()
+            self.spatial_distortion = distortion
+
+    shared = SceneContraction(order=float("inf"))
+    model = torch.nn.ModuleList([Holder(shared), Holder(shared), Holder(SceneContraction()), Holder(None)])
+    assert use_linf_contraction(model) == 2
+    assert type(model[0].spatial_distortion) is LinfSceneContraction and model[0].spatial_distortion is model[1].spatial_distortion
+    assert type(model[2].spatial_distortion) is SceneContraction and model[3].spatial_distortion is None
 
 
 def test_proposal_density_sees_positions_without_their_gradient():
