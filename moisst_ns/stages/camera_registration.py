@@ -97,6 +97,13 @@ class CameraRegistrationConfig:
     """A fit whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms) on any parameter is
     not determined by the data and keeps the prior (measured on 96x72 rigs: 0.3-10 ms and 1-6 cm for fits that were
     right, 58-63 cm and 63 ms for one that was 1.5 m off)."""
+    min_significance: float = 1.0
+    """A fit whose held-back cost rises by less than this many times three standard errors over the frames when one
+    correction is stepped by a typical prior error (10 cm, 1 deg, 10 ms; ``typical_error_significance``) keeps the
+    prior: its view does not determine that correction, so wherever the fit ended along it is not the data's answer
+    (measured at the truth, 96x72 rigs: 0.1-0.9 on some correction for the side cameras that were accepted 40 and
+    131 cm off, >= 1.3 on all for the one accepted within 2 cm, >= 1.5 for every forward-right camera; >= 3 for both
+    cameras at 320x240). 0 switches the test off."""
     feature_start: bool = True
     """Start each camera from its pose fitted to SIFT features matched to the reference camera's map-anchored
     keypoints (``feature_start``) where that fit holds, else from its prior (a side camera the reference never
@@ -153,6 +160,8 @@ class CameraResult:
     """The split-half part of ``sigma`` (``split_half_spread``; zeros when ``split_half`` is off)."""
     start: str = "prior"
     """Where the photometric solve started: ``prior`` or ``features`` (``feature_start``), with the reason."""
+    significance: List[float] = field(default_factory=list)
+    """``typical_error_significance`` at the estimate (solver order; empty when not measured)."""
 
 
 def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
@@ -195,6 +204,43 @@ def held_back_check(problem: Registration, theta: np.ndarray, factor: int, confi
     per_frame = np.array([gain[frames == f].mean() for f in np.unique(frames)])
     significant = len(per_frame) >= 2 and per_frame.mean() > 3.0 * per_frame.std(ddof=1) / np.sqrt(len(per_frame))
     return robust_cost(r_pri[both], config.huber), robust_cost(r_est[both], config.huber), bool(significant)
+
+
+def typical_error_significance(problem: Registration, theta: np.ndarray, active: np.ndarray, factor: int,
+                                config: CameraRegistrationConfig) -> Float[np.ndarray, "7"]:
+    """Can the data tell the estimate from a typical prior error, parameter by parameter?
+
+    Fresh pairs are drawn at ``theta``; each active correction is stepped by a typical prior error
+    (``TYPICAL_ERROR``: 10 cm, 1 deg, 10 ms) both ways, and the mean Huber cost increase per frame (the two directions
+    averaged, which cancels the profile's slope) is divided by three standard errors of that mean over the frames (as
+    ``held_back_check`` judges estimate against prior). Below 1 the frames do not tell a typical error apart: the
+    parameter is weakly observable from this camera's view, whatever the drive. A camera that shares little view with
+    the reference camera pairs mostly with itself, and two of its own frames see a façade alike whatever its
+    along-track lever arm, offset or roll (docs/method.md).
+
+    Returns:
+        Per correction (solver order): mean increase / (3 standard errors); inf for inactive ones, 0 where fewer than two
+        frames have pairs.
+    """
+    pairs = problem.pairs(theta, factor, config.held_back_points)
+    r0, _, ok0 = problem.residuals(theta, pairs, factor, jacobian=False)
+    cost0 = huber_costs(r0, config.huber)
+    significance = np.full(7, np.inf)
+    for i in np.flatnonzero(active):
+        gain, valid = np.zeros(len(r0)), ok0.copy()
+        for sign in (1.0, -1.0):
+            step = theta.copy()
+            step[i] += sign * TYPICAL_ERROR[i]
+            r, _, ok = problem.residuals(step, pairs, factor, jacobian=False)
+            gain += 0.5 * (huber_costs(r, config.huber) - cost0)
+            valid &= ok
+        per_frame = np.array([gain[valid & (pairs.frame_a == f)].mean() for f in np.unique(pairs.frame_a[valid])])
+        if len(per_frame) < 2:
+            significance[i] = 0.0
+            continue
+        se = per_frame.std(ddof=1) / np.sqrt(len(per_frame))
+        significance[i] = per_frame.mean() / (3.0 * se) if se > 0 else np.inf
+    return significance
 
 
 def _bounds(config: CameraRegistrationConfig) -> Float[np.ndarray, "7"]:
@@ -304,16 +350,24 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
     at_bound = [PARAMETERS[i] for i in np.flatnonzero(active & (np.abs(theta) >= 0.999 * _bounds(config)))]
     ratio = history[-1]["cost"] / floor_cost if floor_cost else 0.0
     undetermined = [PARAMETERS[i] for i in np.flatnonzero(active & (spread > config.max_split_half * TYPICAL_ERROR))]
-    kept = not better or bool(at_bound) or ratio > config.max_cost_ratio or bool(undetermined)
+    significance = typical_error_significance(problem, theta, active, finest, config) if config.min_significance > 0 else np.full(7, np.inf)
+    blind = [PARAMETERS[i] for i in np.flatnonzero(active & (significance < config.min_significance))]
+    kept = not better or bool(at_bound) or ratio > config.max_cost_ratio or bool(undetermined) or bool(blind)
     prior = problem.model.prior.numpy()
     pose, offset = (prior, problem.model.prior_offset) if kept else _corrected(prior, problem.model.prior_offset, theta)
-    note = f"ran into its bound on {', '.join(at_bound)} (a runaway)" if at_bound else ""
+    note = ""
+    if blind:
+        note = (f"its view does not tell a typical prior error apart on {', '.join(blind)} (held-back cost increase under "
+                f"{config.min_significance:g}x three standard errors over the frames)")
+    if at_bound:
+        note = f"ran into its bound on {', '.join(at_bound)} (a runaway)"
     if undetermined:
         note = f"the two halves of the drive disagree on {', '.join(undetermined)} by more than {config.max_split_half:g}x a typical prior error"
     if ratio > config.max_cost_ratio:
         note = f"its photometric cost at the estimate is {ratio:.1f}x the reference camera's own (a wrong minimum)"
     return CameraResult(problem.camera.sensor, prior, problem.model.prior_offset, pose, offset, np.fmax(formal, spread).tolist(), cost_pri,
-                        cost_est, kept, history, wall_s + time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun)
+                        cost_est, kept, history, wall_s + time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun,
+                        significance.tolist())
 
 
 def _started(initial: Optional[FeatureStart]) -> str:

@@ -42,7 +42,8 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                  "prior_time_offset": r.prior_offset, "sigma": [s if np.isfinite(s) else None for s in sigma],
                  "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step],
                  "loss_estimate": _finite(r.cost_estimate), "loss_prior": _finite(r.cost_prior), "kept_prior": r.kept_prior,
-                 "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history, **parts}
+                 "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history,
+                 "typical_error_significance": [_finite(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None, **parts}
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry
