@@ -370,7 +370,7 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
         note = f"its photometric cost at the estimate is {ratio:.1f}x the reference camera's own (a wrong minimum)"
     return CameraResult(problem.camera.sensor, prior, problem.model.prior_offset, pose, offset, np.fmax(formal, spread).tolist(), cost_pri,
                         cost_est, kept, history, wall_s + time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun,
-                        significance.tolist())
+                        significance.tolist() if config.min_significance > 0 else [])
 
 
 def _started(initial: Optional[FeatureStart]) -> str:
