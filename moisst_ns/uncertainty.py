@@ -225,17 +225,19 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
             loss_est, loss_prior, source = entry["loss_estimate"], entry["loss_prior"], "camera-registration pairs"
         weak = list(drive_weak.get(name, []))
         if stage is not None and name in stage["sensors"]:
-            weak += stage["sensors"][name]["weak"]
+            weak += stage["sensors"][name]["weak"] + (stage["sensors"][name].get("blind") or [])
         if sigma is not None:
             weak += [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step]
         weak = [p for p in PARAMETERS if p in weak]
         free = [] if sigma is None else [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= UNCONSTRAINED * step]
-        verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free)
+        blind = stage["sensors"][name].get("blind") if stage is not None and name in stage["sensors"] else None
+        verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free, blind)
         if keep_prior:  # the dataset's prior (rig.json), also for a LiDAR the NeRF started from the LiDAR-first estimate
             final.T_ref_sensor[name] = np.array(dataset_prior.T_ref_sensor[name], dtype=np.float64)
             final.time_offset[name] = float(dataset_prior.time_offset[name])
             lines.append(f"WARNING: {name}: {reason}; calibration.json keeps it")
-        final.trust[name] = trust_entry(sigma, verdict, weak, reason)
+        # a kept prior's own uncertainty is unknown: the sigma measured belongs to the estimate set aside (summary only)
+        final.trust[name] = trust_entry(None if keep_prior else sigma, verdict, weak, reason)
         record[name] = {"sigma": None if sigma is None else [float(v) if np.isfinite(v) else None for v in sigma], "sigma_source": source, "loss_estimate": loss_est, "loss_prior": loss_prior,
                         "kept_prior": keep_prior, **final.trust[name].to_json()}
     head = f"{'sensor':<12}" + "".join(f"{'s_' + p:>14}" for p in PARAMETERS) + "  verdict"

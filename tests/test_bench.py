@@ -103,11 +103,14 @@ def test_micro_bench_fills_every_section(tmp_path):
     before = (REPO / "docs" / "benchmarks.md").read_bytes() if (REPO / "docs" / "benchmarks.md").exists() else None
     result = run_bench(BenchConfig(scenarios=path, out=tmp_path / "out"))
     md = (tmp_path / "out" / "benchmarks.md").read_text()
-    for heading in ("Table III", "Table IV", "Table V", "Table VI", "Table VII", "Speed and cost", "## Floor"):
+    for heading in ("Table III", "Table IV", "Table V", "Table VI", "Table VII", "Speed and cost", "## Floor", "## Uncertainty"):
         assert heading in md, heading
     saved = json.loads((tmp_path / "out" / "bench.json").read_text())
     combined = next(c for c in saved["cases"] if c["id"] == "combined")
     assert len(combined["runs"]) == 2 and all("history" in r for r in combined["runs"])
+    # every run's sensors with sigmas are judged against the truth; the summary counts them
+    judged = sum(len(r["coverage"]) for c in saved["cases"] for r in c["runs"] if "coverage" in r)
+    assert judged > 0 and saved["coverage"]["finite"] >= judged
     # the priors of the combined rigs are the paper's perturbation: 86.6 cm, 100 ms for every sensor
     assert combined["before"]["cam_front_right"]["translation_cm"] == pytest.approx(86.6, abs=0.1)
     assert combined["before"]["lidar"]["time_ms"] == pytest.approx(100.0, abs=1e-6)

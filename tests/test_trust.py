@@ -166,6 +166,15 @@ def test_verdict_rules(moving, loss_est, loss_prior, weak, hit, verdict, keep_pr
     assert reason and "\n" not in reason
 
 
+def test_a_blind_camera_keeps_its_prior_whatever_its_loss():
+    """Camera registration's typical-error test said the view does not tell y and roll apart: even a lower held-back
+    loss at the estimate does not make it converged; the prior is kept and the reason names the blind parameters."""
+    got, reason, keep = decide_verdict(None, 0.01, 0.02, [], [], [], ["y", "roll"])
+    assert (got, keep) == ("not converged", True)
+    assert "y, roll" in reason and "\n" not in reason
+    assert decide_verdict(None, 0.01, 0.02, [], [], [], [])[0] == "converged"
+
+
 def _write(path, dx=0.0, roll_deg=0.0, ddelta=0.0, sigma=None, verdict=None):
     import roma as _roma
 
@@ -226,3 +235,24 @@ def test_calibrate_exit_status_follows_the_verdicts(tmp_path, monkeypatch, verdi
         with pytest.raises(SystemExit) as err:
             cli.main()
         assert err.value.code == code
+
+
+def test_coverage_counts_errors_within_three_sigma_and_too_wide_sigmas(tmp_path):
+    """The benchmark's calibration check of sigma (``bench.coverage``), exact on constructed estimates."""
+    from moisst_ns.bench.coverage import coverage_markdown, coverage_summary, sensor_coverage
+
+    truth = _write(tmp_path / "truth.json")
+    tight = _write(tmp_path / "tight.json", dx=0.02, roll_deg=0.5, ddelta=0.005, sigma=(0.01, 0.1, 0.001), verdict="converged")
+    wide = _write(tmp_path / "wide.json", dx=0.02, roll_deg=0.5, ddelta=0.005, sigma=(1.0, 10.0, 0.1), verdict="converged")
+    row = sensor_coverage(tight, truth)["cam1"]
+    assert row["error"] == pytest.approx([0.02, 0, 0, np.deg2rad(0.5), 0, 0, 0.005], abs=1e-9)
+    assert row["sigma"][3] == pytest.approx(np.deg2rad(0.1))
+    assert sensor_coverage(truth, truth) == {}  # no sigmas: nothing to judge
+    s = coverage_summary({"tight": {"cam1": row}})
+    assert (s["within_3sigma"], s["finite"]) == (5, 7)  # roll 5 sigma and the time offset 5 sigma miss
+    assert sorted((m[2], round(m[3], 6)) for m in s["misses"]) == [("roll", 5.0), ("time_offset", 5.0)]
+    assert s["too_wide"] == [] and s["largest_ratio"] == pytest.approx(0.01 / np.sqrt(0.02**2 / 3))
+    s = coverage_summary({"wide": sensor_coverage(wide, truth)})
+    assert (s["within_3sigma"], s["finite"]) == (7, 7)
+    assert [(k, round(u, 2)) for _, _, k, u in s["too_wide"]] == [("translation", 86.6), ("rotation", 34.64), ("time offset", 20.0)]
+    assert "7 of 7" in "\n".join(coverage_markdown(s))

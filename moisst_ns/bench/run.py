@@ -111,6 +111,7 @@ def calibrate_case(rig: Path, out: Path, raw: dict, case: dict, steps: Optional[
     """One moisst-calibrate run; returns its summary plus the history statistics and per-frame pose errors."""
     import torch
 
+    from moisst_ns.bench.coverage import sensor_coverage
     from moisst_ns.pipeline import CalibrateConfig, CalibrationError, run_calibration
     from moisst_ns.runs.history import read_history
     from moisst_ns.rig.calibration import RigData, frame_pose_errors, frame_poses
@@ -137,6 +138,7 @@ def calibrate_case(rig: Path, out: Path, raw: dict, case: dict, steps: Optional[
     data = RigData.from_rig(rig_, truth)
     estimate = load_calibration(out / "calibration.json")
     prior = Calibration.from_rig(rig_)
+    result["coverage"] = sensor_coverage(out / "calibration.json", rig / "ground_truth.json")
     result["frame_errors"], result["frame_errors_prior"] = {}, {}
     for name in rig_.sensor_names:
         if name == rig_.reference_sensor:
@@ -255,7 +257,10 @@ def run_bench(cfg: BenchConfig) -> dict:
                       "losses": case.get("losses", []), "runs": runs, "pooled": pooled(ok, raw["last"]), "before": before,
                       "failed": None if ok else "; ".join(r.get("failed", "") for r in runs), **frame})
 
-    result: dict = {"scenario": raw, "scenario_file": str(path), "cases": cases, "command": command,
+    from moisst_ns.bench.coverage import coverage_summary
+
+    coverage = coverage_summary({f"{c['id']}-{r['layout']}-s{r['seed']}": r["coverage"] for c in cases for r in c["runs"] if "coverage" in r})
+    result: dict = {"coverage": coverage, "scenario": raw, "scenario_file": str(path), "cases": cases, "command": command,
                     "date": datetime.date.today().isoformat(), "machine": machine()}
     first_seed, first_layout = raw["seeds"][0]
     combined = next((c for c in cases if "III" in c["tables"]), cases[0])

@@ -151,6 +151,10 @@ def markdown(result: dict) -> str:
     if fail_at:
         lines += [f"Initial-error sensitivity (cam_front_right): {fail_at}", ""]
     lines += floor_markdown(result.get("floor", []))
+    if "coverage" in result:
+        from moisst_ns.bench.coverage import coverage_markdown
+
+        lines += coverage_markdown(result["coverage"])
     lines += ["![error vs wall time](bench_error_vs_time.png)", ""]
     return "\n".join(lines)
 

@@ -128,7 +128,8 @@ def parse_trust(entry: dict) -> Optional[SensorTrust]:
 
 
 def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], loss_prior: Optional[float],
-                   weak: List[str], hit_bounds: List[str], unconstrained: Optional[List[str]] = None) -> tuple:
+                   weak: List[str], hit_bounds: List[str], unconstrained: Optional[List[str]] = None,
+                   blind: Optional[List[str]] = None) -> tuple:
     """The verdict of one sensor, its one-line reason, and whether to keep the prior instead of the estimate.
 
     Args:
@@ -140,11 +141,16 @@ def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], 
         hit_bounds: the bounds its estimate ran into.
         unconstrained: parameters the data do not determine at all (sigma infinite or beyond ``UNCONSTRAINED``
             times the typical prior error): the estimate of them is arbitrary.
+        blind: parameters a typical prior error of which the sensor's view does not tell apart (camera registration's
+            ``typical_error_significance``): the sensor was held at its prior.
 
     Returns:
         ``(verdict, reason, keep_prior)``: ``keep_prior`` when the held-back loss at the estimate is no better than at
-        the prior, or some parameter is unconstrained (a calibration never silently ends worse than it started).
+        the prior, or some parameter is unconstrained or blind (a calibration never silently ends worse than it started).
     """
+    if blind:
+        return ("not converged", f"its view does not tell a typical prior error (10 cm, 1 deg, 10 ms) apart on {', '.join(blind)}: "
+                "the prior is kept, not calibrated", True)
     if unconstrained:
         return ("not converged", f"{', '.join(unconstrained)} not determined by the data (sigma beyond {UNCONSTRAINED:g}x a "
                 "typical prior error): the prior is kept", True)

@@ -97,16 +97,14 @@ class CameraRegistrationConfig:
     """A fit whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms) on any parameter is
     not determined by the data and keeps the prior (measured on 96x72 rigs: 0.3-10 ms and 1-6 cm for fits that were
     right, 58-63 cm and 63 ms for one that was 1.5 m off)."""
-    min_significance: float = 0.0
-    """When > 0: a fit whose held-back cost rises by less than this many times three standard errors over the frames
-    when one correction is stepped by a typical prior error (10 cm, 1 deg, 10 ms; ``typical_error_significance``) keeps
-    the prior: its view does not determine that correction, so wherever the fit ended along it is not the data's answer
-    (measured at the truth, 96x72 rigs: 0.1-0.9 on some correction for the side cameras that were accepted 40 and
-    131 cm off, >= 1.3 on all for the one accepted within 2 cm, >= 1.5 for every forward-right camera; >= 3 for both
-    cameras at 320x240; with 1, every wrong acceptance on twelve 96x72 rigs kept its prior: docs/method.md). Off (0)
-    by default: ``moisst-calibrate`` then lets the NeRF calibrate a kept camera, which on the 96x72 end-to-end test rig
-    took the side camera from its prior to 86.2 cm / 9.47 deg / 159 ms (flagged not converged); holding such a camera
-    at its prior in the NeRF is the missing piece."""
+    min_significance: float = 1.0
+    """A fit whose held-back cost rises by less than this many times three standard errors over the frames when one
+    correction is stepped by a typical prior error (10 cm, 1 deg, 10 ms; ``typical_error_significance``) keeps the
+    prior, and ``moisst-calibrate`` holds it there (the NeRF sees the same view): that view does not determine the
+    correction, so wherever the fit ended along it is not the data's answer (measured at the truth, 96x72 rigs: 0.1-0.9
+    on some correction for the side cameras accepted 40 and 131 cm off, >= 1.3 on all for the one accepted within
+    2 cm, >= 1.5 for every forward-right camera; >= 3 for both cameras at 320x240; with 1, every wrong acceptance on
+    twelve 96x72 rigs kept its prior: docs/method.md). 0 switches the test off."""
     feature_start: bool = True
     """Start each camera from its pose fitted to SIFT features matched to the reference camera's map-anchored
     keypoints (``feature_start``) where that fit holds, else from its prior (a side camera the reference never

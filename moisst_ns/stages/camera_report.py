@@ -30,7 +30,9 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
 
     ``sigma`` (and its two parts ``sigma_formal``, ``sigma_split_half``) is in the trust order (``x, y, z, roll, pitch,
     yaw, time_offset``; m, rad, s); a parameter whose sigma exceeds its typical prior error (10 cm, 1 deg, 10 ms) is
-    listed in ``weak``.
+    listed in ``weak``; ``blind`` lists those its view does not tell a typical prior error apart on
+    (``typical_error_significance`` under ``min_significance``): such a camera keeps its prior, and ``moisst-calibrate``
+    holds it there.
     """
     before = calibration_report_errors(start, truth) if truth else {}
     after = calibration_report_errors(result.calibration, truth) if truth else {}
@@ -43,7 +45,9 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                  "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step],
                  "loss_estimate": _finite(r.cost_estimate), "loss_prior": _finite(r.cost_prior), "kept_prior": r.kept_prior,
                  "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history,
-                 "typical_error_significance": [_finite(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None, **parts}
+                 "typical_error_significance": [_finite(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None,
+                 "blind": [p for p, j in zip(PARAMETERS, JACOBIAN_ORDER) if r.significance and r.significance[j] < config.min_significance],
+                 **parts}
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry
