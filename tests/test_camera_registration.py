@@ -252,3 +252,27 @@ def test_typical_error_test_keeps_the_prior_of_a_side_camera_its_view_cannot_det
     assert len(r.significance) == 7 and min(r.significance) < 1.0
     np.testing.assert_array_equal(result.calibration.T_ref_sensor["cam_left"], start.T_ref_sensor["cam_left"])
     assert result.calibration.time_offset["cam_left"] == start.time_offset["cam_left"]
+
+
+def test_own_partners_are_farther_apart_at_the_finest_level(rig_folder):
+    """A camera's own partner is the nearest frame at least ``own_baseline`` of driving away at the coarse levels and
+    at least ``fine_baseline`` at the finest one: every own pair is that far apart, and the nearest pair is less than
+    one frame's travel farther (the partner is the first frame past the baseline, not any frame)."""
+    from moisst_ns.stages.camera_registration import load_camera
+    from moisst_ns.stages.lidar_map import lidar_map
+    from moisst_ns.stages.photometric import Registration
+
+    rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
+    config = CameraRegistrationConfig(own_baseline=1.5, fine_baseline=3.0)
+    world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
+    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    problem = Registration(traj, world, load_camera(rig, "cam_left", [1, 2]), load_camera(rig, rig.reference_sensor, [1, 2]), truth, config)
+    positions = problem.model.poses(torch.zeros(7, dtype=torch.float64)).numpy()[:, :3, 3]
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    travelled = np.r_[0.0, np.cumsum(steps)]
+    for factor, baseline in ((2, 1.5), (1, 3.0)):
+        pairs = problem.pairs(np.zeros(7), factor, 100)
+        own = pairs.own
+        assert own.sum() > 100
+        gap = np.abs(travelled[pairs.frame_b[own]] - travelled[pairs.frame_a[own]])
+        assert gap.min() >= baseline and gap.max() < baseline + steps.max(), (factor, gap.min(), gap.max())

@@ -74,6 +74,8 @@ class CameraRegistrationConfig:
     """...plus this fraction of its depth."""
     own_baseline: float = 1.5
     """A camera's own partner frame is the first at least this far (driving distance) from the frame, metres."""
+    fine_baseline: float = 0.0
+    """The same at the finest pyramid level (0: ``own_baseline``): more parallax sharpens the along-track terms."""
     held_back_points: int = 300
     """Map points per frame of the held-back check (estimate vs prior), drawn afresh after the fit."""
     max_translation: float = 2.0

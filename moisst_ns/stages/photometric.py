@@ -107,6 +107,7 @@ class Registration:
         seen_by = np.stack([self._visible(poses[k], cam.model) for k in range(len(cam.stamps))])
         travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))]
         stack = cam.levels[factor]
+        baseline = c.fine_baseline if c.fine_baseline > 0 and factor == min(cam.levels) else c.own_baseline
         rows = {"points": [], "frame_a": [], "own": [], "frame_b": [], "value_b": []}
         for k in range(len(cam.stamps)):
             candidates = np.flatnonzero(seen_by[k])
@@ -136,7 +137,7 @@ class Registration:
                     rows[key].append(val)
                 pending[hit] = False
             # own partner: the nearest frame at least own_baseline of driving away (both sides when possible)
-            for partner in (self._partner(travelled, k, +1), self._partner(travelled, k, -1)):
+            for partner in (self._partner(travelled, k, +1, baseline), self._partner(travelled, k, -1, baseline)):
                 if partner is None:
                     continue
                 seen = seen_by[partner, chosen]
@@ -148,8 +149,8 @@ class Registration:
         cat = {k: np.concatenate(v) for k, v in rows.items()}
         return PairSet(self.world[cat["points"]], cat["frame_a"], cat["own"], cat["frame_b"], cat["value_b"])
 
-    def _partner(self, travelled: np.ndarray, k: int, direction: int) -> Optional[int]:
-        far = np.flatnonzero(np.abs(travelled - travelled[k]) >= self.config.own_baseline)
+    def _partner(self, travelled: np.ndarray, k: int, direction: int, baseline: float) -> Optional[int]:
+        far = np.flatnonzero(np.abs(travelled - travelled[k]) >= baseline)
         far = far[far > k] if direction > 0 else far[far < k]
         if len(far) == 0:
             return None
