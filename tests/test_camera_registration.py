@@ -220,7 +220,7 @@ def test_typical_error_significance_tells_the_side_cameras_blind_directions(rig_
     """At the truth on this 96x72 street rig: stepping any correction of the forward-right camera (which shares the
     reference camera's view) by a typical prior error raises its held-back cost well beyond three standard errors over
     the frames; the side camera, which pairs almost only with its own frames, does not tell a 10 cm lateral lever arm or
-    a 1 deg roll apart (measured 0.1 and 0.5), and an inactive correction is reported as inf."""
+    a 1 deg roll apart (measured 0.4 and 0.4 with own partners 3 m apart, 0.1 and 0.5 at 1.5 m), and an inactive correction is reported as inf."""
     from moisst_ns.stages.camera_registration import PARAMETERS, load_camera, typical_error_significance
     from moisst_ns.stages.lidar_map import lidar_map
     from moisst_ns.stages.photometric import Registration

@@ -74,8 +74,9 @@ class CameraRegistrationConfig:
     """...plus this fraction of its depth."""
     own_baseline: float = 1.5
     """A camera's own partner frame is the first at least this far (driving distance) from the frame, metres."""
-    fine_baseline: float = 0.0
-    """The same at the finest pyramid level (0: ``own_baseline``): more parallax sharpens the along-track terms."""
+    fine_baseline: float = 3.0
+    """The same at the finest pyramid level (0: ``own_baseline``): more parallax sharpens the along-track terms
+    (measured, stages alone, 320x240: side camera's offset 1.08/0.98/0.28 ms -> 0.31/0.45/0.70 on three rigs)."""
     held_back_points: int = 300
     """Map points per frame of the held-back check (estimate vs prior), drawn afresh after the fit."""
     max_translation: float = 2.0
