@@ -214,23 +214,23 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         if i == rig.data.reference_index:
             continue
         sigma, loss_est, loss_prior, source = None, None, None, "none"
+        entry = stage["sensors"].get(name) if stage is not None else None
         if name in measured:
             m = measured[name]
             sigma, loss_est, loss_prior, source = m.sigma, m.loss_estimate, m.loss_prior, "held-back pixels"
-        elif stage is not None and name in stage["sensors"] and "observability" in stage["sensors"][name]:
-            sigma, source = [d["sigma"] for d in stage["sensors"][name]["observability"]], "LiDAR-first formal"
-        elif stage is not None and name in stage["sensors"]:  # a camera held at its camera-registration estimate
-            entry = stage["sensors"][name]
+        elif entry is not None and "observability" in entry:
+            sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
+        elif entry is not None:  # a camera held at its camera-registration estimate
             sigma = [np.inf if v is None else float(v) for v in entry["sigma"]]
             loss_est, loss_prior, source = entry["loss_estimate"], entry["loss_prior"], "camera-registration pairs"
+        blind = entry.get("blind") if entry is not None else None
         weak = list(drive_weak.get(name, []))
-        if stage is not None and name in stage["sensors"]:
-            weak += stage["sensors"][name]["weak"] + (stage["sensors"][name].get("blind") or [])
+        if entry is not None:
+            weak += entry["weak"] + (blind or [])
         if sigma is not None:
             weak += [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step]
         weak = [p for p in PARAMETERS if p in weak]
         free = [] if sigma is None else [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= UNCONSTRAINED * step]
-        blind = stage["sensors"][name].get("blind") if stage is not None and name in stage["sensors"] else None
         verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free, blind)
         if keep_prior:  # the dataset's prior (rig.json), also for a LiDAR the NeRF started from the LiDAR-first estimate
             final.T_ref_sensor[name] = np.array(dataset_prior.T_ref_sensor[name], dtype=np.float64)

@@ -166,7 +166,8 @@ class CameraResult:
     """Where the photometric solve started: ``prior`` or ``features`` (``feature_start``), with the reason."""
     significance: List[float] = field(default_factory=list)
     """``typical_error_significance`` at the estimate (solver order; empty when not measured)."""
-
+    blind: List[str] = field(default_factory=list)
+    """The corrections whose significance is under ``min_significance`` (the camera then keeps its prior)."""
 
 def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
     pose = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(theta[:3]), torch.from_numpy(theta[3:6]))
@@ -371,7 +372,7 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
         note = f"its photometric cost at the estimate is {ratio:.1f}x the reference camera's own (a wrong minimum)"
     return CameraResult(problem.camera.sensor, prior, problem.model.prior_offset, pose, offset, np.fmax(formal, spread).tolist(), cost_pri,
                         cost_est, kept, history, wall_s + time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun,
-                        significance.tolist() if config.min_significance > 0 else [])
+                        significance.tolist() if config.min_significance > 0 else [], blind)
 
 
 def _started(initial: Optional[FeatureStart]) -> str:

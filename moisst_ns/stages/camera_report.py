@@ -46,7 +46,7 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                  "loss_estimate": _finite(r.cost_estimate), "loss_prior": _finite(r.cost_prior), "kept_prior": r.kept_prior,
                  "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history,
                  "typical_error_significance": [_finite(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None,
-                 "blind": [p for p, j in zip(PARAMETERS, JACOBIAN_ORDER) if r.significance and r.significance[j] < config.min_significance],
+                 "blind": [p for p in PARAMETERS if p in r.blind],
                  **parts}
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]

@@ -136,7 +136,7 @@ class Registration:
                                  ("frame_b", np.full(len(hit), j)), ("value_b", value[okb])):
                     rows[key].append(val)
                 pending[hit] = False
-            # own partner: the nearest frame at least own_baseline of driving away (both sides when possible)
+            # own partner: the nearest frame at least ``baseline`` of driving away (both sides when possible)
             for partner in (self._partner(travelled, k, +1, baseline), self._partner(travelled, k, -1, baseline)):
                 if partner is None:
                     continue
