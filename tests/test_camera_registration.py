@@ -173,7 +173,8 @@ def test_bad_input_one_line_errors(rig_folder, tmp_path):
 
 def _feature_start_of(folder, sensor="cam_front_right"):
     """The feature start of ``sensor`` on a rig whose LiDAR is at the truth, and the truth."""
-    from moisst_ns.stages.camera_registration import _bounds, load_camera
+    from moisst_ns.stages.camera_guards import bounds
+    from moisst_ns.stages.camera_registration import load_camera
     from moisst_ns.stages.feature_start import FeatureStartConfig, feature_start
     from moisst_ns.stages.lidar_map import lidar_map
 
@@ -184,7 +185,7 @@ def _feature_start_of(folder, sensor="cam_front_right"):
     reference, camera = load_camera(rig, "cam_front", [1]), load_camera(rig, sensor, [1])
     prior = np.asarray(start.T_ref_sensor[sensor])
     found = feature_start(traj, world, camera, reference, np.eye(4), 0.0, prior, start.time_offset[sensor],
-                          rig.sensors[sensor].intrinsics, _bounds(config), FeatureStartConfig(), log=lambda s: None)
+                          rig.sensors[sensor].intrinsics, bounds(config), FeatureStartConfig(), log=lambda s: None)
     return found, prior, start.time_offset[sensor], truth
 
 
@@ -221,7 +222,8 @@ def test_typical_error_significance_tells_the_side_cameras_blind_directions(rig_
     reference camera's view) by a typical prior error raises its held-back cost well beyond three standard errors over
     the frames; the side camera, which pairs almost only with its own frames, does not tell a 10 cm lateral lever arm or
     a 1 deg roll apart (measured 0.4 and 0.4 with own partners 3 m apart, 0.1 and 0.5 at 1.5 m), and an inactive correction is reported as inf."""
-    from moisst_ns.stages.camera_registration import PARAMETERS, load_camera, typical_error_significance
+    from moisst_ns.stages.camera_guards import PARAMETERS, typical_error_significance
+    from moisst_ns.stages.camera_registration import load_camera
     from moisst_ns.stages.lidar_map import lidar_map
     from moisst_ns.stages.photometric import Registration
 

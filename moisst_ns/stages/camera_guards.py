@@ -1,0 +1,154 @@
+"""One camera's robust least-squares solve and the tests its fit must pass before the camera leaves its prior.
+
+``solve`` is the inner trust-region solve of ``camera_registration`` (Huber, bounded corrections). The tests:
+``held_back_check`` (is the estimate better than the prior on pairs the fit did not use?),
+``typical_error_significance`` (can the data tell the estimate from a typical prior error, per correction?),
+``split_half_spread`` (do the two halves of the drive agree?) and ``reference_cost`` (what the reference camera's own
+frames get down to: the wrong-minimum test's yardstick). ``config`` is always the stage's
+``camera_registration.CameraRegistrationConfig``. Nothing here imports nerfstudio.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, Tuple
+
+import numpy as np
+from jaxtyping import Float
+from scipy.optimize import least_squares
+
+from moisst_ns.rig.format import Calibration
+from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.stages.observability import TEST_STEPS
+from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
+
+PARAMETERS = ("roll", "pitch", "yaw", "x", "y", "z", "time_offset")
+"""The corrections in solver order (rotation about the camera's own axes, lever arm in the reference frame, delta)."""
+TYPICAL_ERROR = np.asarray(TEST_STEPS)[[3, 4, 5, 0, 1, 2, 6]]
+"""``observability.TEST_STEPS`` (10 cm, 1 deg, 10 ms) in solver order (rad, m, s)."""
+
+
+def held_back_check(problem: Registration, theta: np.ndarray, factor: int, config) -> Tuple[float, float, bool]:
+    """Is the estimate better than the prior on pairs the fit did not use?
+
+    Fresh pairs are drawn at the estimate and at the prior alike (each draw favours the pose it was drawn at: the
+    samples sit where that pose sees texture), both evaluated at both poses. The estimate is better when the
+    per-frame mean of ``cost(prior) - cost(estimate)`` is positive at three standard errors over the frames.
+
+    Returns:
+        (mean Huber cost at the prior, at the estimate, whether the estimate is significantly better).
+    """
+    draws = [problem.pairs(t, factor, config.held_back_points) for t in (theta, np.zeros(7))]
+    check = PairSet(*(np.concatenate([getattr(d, f) for d in draws]) for f in ("points", "frame_a", "own", "frame_b", "value_b")))
+    r_est, _, ok_est = problem.residuals(theta, check, factor, jacobian=False)
+    r_pri, _, ok_pri = problem.residuals(np.zeros(7), check, factor, jacobian=False)
+    both = ok_est & ok_pri
+    if not both.any():
+        return float("nan"), float("nan"), False
+    gain = huber_costs(r_pri[both], config.huber) - huber_costs(r_est[both], config.huber)
+    frames = check.frame_a[both]
+    per_frame = np.array([gain[frames == f].mean() for f in np.unique(frames)])
+    significant = len(per_frame) >= 2 and per_frame.mean() > 3.0 * per_frame.std(ddof=1) / np.sqrt(len(per_frame))
+    return robust_cost(r_pri[both], config.huber), robust_cost(r_est[both], config.huber), bool(significant)
+
+
+def typical_error_significance(problem: Registration, theta: np.ndarray, active: np.ndarray, factor: int,
+                                config) -> Float[np.ndarray, "7"]:
+    """Can the data tell the estimate from a typical prior error, parameter by parameter?
+
+    Fresh pairs are drawn at ``theta``; each active correction is stepped by a typical prior error
+    (``TYPICAL_ERROR``: 10 cm, 1 deg, 10 ms) both ways, and the mean Huber cost increase per frame (the two directions
+    averaged, which cancels the profile's slope) is divided by three standard errors of that mean over the frames (as
+    ``held_back_check`` judges estimate against prior). Below 1 the frames do not tell a typical error apart: the
+    parameter is weakly observable from this camera's view, whatever the drive. A camera that shares little view with
+    the reference camera pairs mostly with itself, and two of its own frames see a façade alike whatever its
+    along-track lever arm, offset or roll (docs/method.md).
+
+    Returns:
+        Per correction (solver order): mean increase / (3 standard errors); inf for inactive ones, 0 where fewer than two
+        frames have pairs.
+    """
+    pairs = problem.pairs(theta, factor, config.held_back_points)
+    r0, _, ok0 = problem.residuals(theta, pairs, factor, jacobian=False)
+    cost0 = huber_costs(r0, config.huber)
+    significance = np.full(7, np.inf)
+    for i in np.flatnonzero(active):
+        gain, valid = np.zeros(len(r0)), ok0.copy()
+        for sign in (1.0, -1.0):
+            step = theta.copy()
+            step[i] += sign * TYPICAL_ERROR[i]
+            r, _, ok = problem.residuals(step, pairs, factor, jacobian=False)
+            gain += 0.5 * (huber_costs(r, config.huber) - cost0)
+            valid &= ok
+        per_frame = np.array([gain[valid & (pairs.frame_a == f)].mean() for f in np.unique(pairs.frame_a[valid])])
+        if len(per_frame) < 2:
+            significance[i] = 0.0
+            continue
+        se = per_frame.std(ddof=1) / np.sqrt(len(per_frame))
+        significance[i] = per_frame.mean() / (3.0 * se) if se > 0 else np.inf
+    return significance
+
+
+def bounds(config) -> Float[np.ndarray, "7"]:
+    """The bound on each correction, solver order (rad, m, s)."""
+    return np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset]
+
+
+def solve(problem: Registration, theta: np.ndarray, active: np.ndarray, pairs: PairSet, factor: int, config):
+    """One robust (Huber) trust-region solve of the active corrections from ``theta`` on fixed pairs.
+
+    Returns:
+        (the new corrections, residual evaluations used, (residuals, Jacobian, valid) at the solution).
+    """
+    bound = bounds(config)[active]
+    scale = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005][active]
+    cache: Dict[Tuple[bytes, bool], tuple] = {}
+
+    def full(x, jacobian=False):
+        th = theta.copy()
+        th[active] = x
+        key = (th.tobytes(), jacobian)
+        if key not in cache:  # least_squares asks for the residuals of every trial step, the Jacobian of accepted ones
+            cache.clear()
+            cache[key] = problem.residuals(th, pairs, factor, jacobian=jacobian)
+        return cache[key]
+
+    solution = least_squares(lambda x: full(x)[0], theta[active], jac=lambda x: full(x, True)[1][:, active], method="trf",
+                             loss="huber", f_scale=config.huber, x_scale=scale, max_nfev=config.max_evaluations, bounds=(-bound, bound))
+    out = theta.copy()
+    out[active] = solution.x
+    return out, solution.nfev, full(solution.x, True)
+
+
+def subset(pairs: PairSet, rows: np.ndarray) -> PairSet:
+    return PairSet(pairs.points[rows], pairs.frame_a[rows], pairs.own[rows], pairs.frame_b[rows], pairs.value_b[rows])
+
+
+def split_half_spread(problem: Registration, theta: np.ndarray, active: np.ndarray, factor: int,
+                      config) -> Float[np.ndarray, "7"]:
+    """Half the difference between the estimates from the first and the second half of the drive.
+
+    Each half (the camera's frames split in time) is solved from ``theta`` on fresh pairs. For two independent
+    halves ``|a - b| / 2`` estimates the standard deviation of the whole drive's estimate, and unlike the formal sigma
+    it also sees what changes along the drive (a bias of one stretch of road, of one kind of motion).
+
+    Returns:
+        Per correction (rad, rad, rad, m, m, m, s); inf where a half has fewer than 50 pairs, 0 for inactive ones.
+    """
+    pairs = problem.pairs(theta, factor, max(config.points_per_frame // factor, 200))
+    half = len(problem.camera.stamps) // 2
+    estimates = []
+    for rows in (pairs.frame_a < half, pairs.frame_a >= half):
+        if rows.sum() < 50:
+            return np.where(active, np.inf, 0.0)
+        estimates.append(solve(problem, theta, active, subset(pairs, rows), factor, config)[0])
+    return np.abs(estimates[0] - estimates[1]) / 2
+
+
+def reference_cost(traj: ReferenceTrajectory, world: np.ndarray, reference: CameraFrames, calibration: Calibration,
+                   config) -> float:
+    """The reference camera's own photometric cost: its frames paired with each other at their known poses, full
+    resolution. What a correctly registered camera can get down to on this scene and these images."""
+    own = Registration(traj, world, reference, None, calibration, config)
+    pairs = own.pairs(np.zeros(7), 1, config.points_per_frame)
+    res, _, ok = own.residuals(np.zeros(7), pairs, 1, jacobian=False)
+    return robust_cost(res[ok], config.huber)
