@@ -1,6 +1,9 @@
 """The accuracy floor of a dataset at a training budget (``moisst-floor``, and the ``floor`` cases of ``moisst-bench``).
 
-A calibration can only be as good as the scene it registers against. ``run_floor`` trains the scene with every
+A calibration can only be as good as the scene it registers against. With ``--stages`` (the default) it first measures
+the floor of the two stages that calibrate a rig with a LiDAR before any NeRF step (``moisst_ns.stages.stage_floor``:
+LiDAR first and the camera registration started at the truth, and the LiDAR map's depth errors). Then (``--nerf``, the
+default) ``run_floor`` trains the scene with every
 sensor held at its *true* calibration (the same field, rays, losses and step count as the method), freezes the
 scene, then releases every sensor's calibration *at the truth* and lets the calibration losses move it for
 ``register_steps`` steps. Where the sensors settle is the floor: a minimum of the losses that is not the truth, so
@@ -69,6 +72,12 @@ class FloorConfig:
     """Show every third-party warning (known-harmless ones are hidden by default: ``moisst_ns.quiet``)."""
     depth_check_rays: int = 8192
     """Camera rays whose rendered depth is compared with the true surface (0: skip the depth check)."""
+    nerf: bool = True
+    """Train the NeRF scene at the truth and measure its floor (``--no-nerf``: the stages' floor alone, minutes)."""
+    stages: bool = True
+    """Also measure the floor of the pre-NeRF stages that calibrate a rig with a LiDAR today: LiDAR first and the camera
+    registration started at the truth (the fits' last estimates, guards ignored), and the LiDAR map's depth errors
+    where the cameras' fits look (``moisst_ns.stages.stage_floor``)."""
 
 
 def floor_errors(rows: List[Dict[str, float]], average_last: int) -> Dict[str, Dict[str, float]]:
@@ -177,22 +186,23 @@ def scene_depth_check(pipeline, rig_root: Path, num_rays: int) -> Dict[str, floa
 
 
 def run_floor(cfg: FloorConfig) -> dict:
-    """Train the scene at the truth, register from the truth against it, check its depths; write ``floor.json``.
+    """Train the scene at the truth, register from the truth against it, check its depths (``--nerf``); run the
+    pre-NeRF stages from the truth and check the LiDAR map's depths (``--stages``); write ``floor.json``.
 
     Args:
         cfg: What to measure and where to write it.
 
     Returns:
-        The content of ``floor.json``: ``{"floor": {sensor: errors}, "depth": {...}, wall times, settings}``.
+        The content of ``floor.json``: ``{"floor": {sensor: errors}, "depth": {...}, wall times, settings}`` for the
+        NeRF and ``{"stages": {"floor", "unfitted", "map_depth", "lidar_s", "camera_s"}}`` for the stages.
 
     Raises:
         FloorError: the dataset has no ground truth, a setting is out of range, or the output folder is refused.
         RigFormatError: rig.json is malformed.
     """
     import torch
-    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
-    from moisst_ns.rig.format import load_rig
+    from moisst_ns.rig.format import load_calibration, load_rig
     from moisst_ns.runs import RunError
 
     rig = load_rig(cfg.dataset)
@@ -200,6 +210,8 @@ def run_floor(cfg: FloorConfig) -> dict:
         raise FloorError(f"{rig.root / 'ground_truth.json'}: not found: the floor is measured against the true calibration")
     if cfg.register_steps < 1 or cfg.log_every < 1 or cfg.average_last < 1:
         raise FloorError("--register-steps, --log-every and --average-last must be >= 1")
+    if not (cfg.nerf or cfg.stages):
+        raise FloorError("--no-nerf and --no-stages together leave nothing to measure")
     out = Path(cfg.output_dir)
     try:
         check_output_dir(out, rig.root, create=True)
@@ -207,6 +219,35 @@ def run_floor(cfg: FloorConfig) -> dict:
         raise FloorError(str(err)) from None
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    result: dict = {"method": cfg.method}
+    if cfg.stages:
+        result["stages"] = stages_floor(rig, load_calibration(rig.root / "ground_truth.json"))
+    if cfg.nerf:
+        result.update(nerf_floor(cfg, rig, out))
+    (out / "floor.json").write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+def stages_floor(rig, truth) -> dict:
+    """``stage_floor.stage_floor`` (LiDAR first and the camera registration started at the truth) and, on
+    ``moisst-synth`` rigs with a LiDAR, ``stage_floor.map_depth_errors`` (the LiDAR map against the true scene)."""
+    from moisst_ns.datasets.synth import build_scene
+    from moisst_ns.datasets.synth_truth import config_of_rig
+    from moisst_ns.stages.stage_floor import map_depth_errors, stage_floor
+
+    measured = stage_floor(rig, truth, log=lambda line: None)
+    metadata = json.loads((rig.root / "rig.json").read_text()).get("metadata", {})
+    synth = config_of_rig(metadata)
+    if synth is not None and any(s.type == "lidar" for s in rig.sensors.values()):
+        scene = build_scene(synth)
+        measured["map_depth"] = map_depth_errors(rig, truth, lambda o, d: scene.cast(o, d)["t_hit"].astype(np.float64))
+    return measured
+
+
+def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
+    """The NeRF floor: the scene trained at the truth, the calibration released at the truth against it."""
+    import torch
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
     config = rig_trainer_config(cfg.method, cfg.scene_steps, rig.root, out, "scene", cfg.seed)
     config.vis = "tensorboard"
@@ -278,7 +319,6 @@ def run_floor(cfg: FloorConfig) -> dict:
         writer.writerows(rows)
     floor = floor_errors([r for r in rows if r["step"] > 0], cfg.average_last)
     result = {
-        "method": cfg.method,
         "scene_steps": config.max_num_iterations,
         "register_steps": cfg.register_steps,
         "average_last": cfg.average_last,
@@ -290,14 +330,24 @@ def run_floor(cfg: FloorConfig) -> dict:
         "floor": floor,
         "depth": depth,
     }
-    (out / "floor.json").write_text(json.dumps(result, indent=1) + "\n")
     return result
 
 
 def floor_summary(result: dict) -> str:
-    """The floor table and the depth figures as printed by ``moisst-floor``."""
-    lines = [format_error_table(f"floor ({result['scene_steps']} scene steps at the truth, then {result['register_steps']} "
-                                "calibration steps from the truth against the frozen scene):", result["floor"])]
+    """The floor tables and the depth figures as printed by ``moisst-floor``."""
+    lines = []
+    stages = result.get("stages")
+    if stages:
+        lines.append(format_error_table(f"floor of the pre-NeRF stages (LiDAR first {stages['lidar_s']:.0f} s, camera registration "
+                                        f"{stages['camera_s']:.0f} s, both started at the truth):", stages["floor"]))
+        lines += [f"  not fitted: {reason}" for reason in stages["unfitted"]]
+        depth = stages.get("map_depth", {})
+        if depth.get("camera_rays"):
+            lines.append(f"LiDAR-map depth error where the cameras' fits look: median {depth['median_abs_m'] * 100:.1f} cm, "
+                         f"90th percentile {depth['p90_abs_m'] * 100:.1f} cm ({depth['camera_rays']} rays, {depth['map_points']} map points)")
+    if "floor" in result:
+        lines.append(format_error_table(f"NeRF floor ({result['scene_steps']} scene steps at the truth, then {result['register_steps']} "
+                                        "calibration steps from the truth against the frozen scene):", result["floor"]))
     depth = result.get("depth", {})
     if "median_abs_m" in depth:
         lines.append(f"camera-ray depth error in the LiDAR's field: median {depth['median_abs_m'] * 100:.1f} cm, "

@@ -179,6 +179,19 @@ def trust_entry(sigma: Optional[List[float]], verdict: str, weak: List[str], rea
     return SensorTrust([float(s) for s in sigma[:3]], [float(np.rad2deg(s)) for s in sigma[3:6]], float(sigma[6]), verdict, weak, reason)
 
 
+def held_amounts(check: dict) -> str:
+    """The release of each inconsistent held parameter (``lidar_first.release_check``) in cm, deg or ms."""
+    from moisst_ns.rig.trust import PARAMETERS
+
+    units = {"time_offset": (1000.0, "ms")}
+    parts = []
+    for name, change in zip(PARAMETERS, check["released_change"]):
+        if name in check["inconsistent"]:
+            scale, unit = units.get(name, (100.0, "cm") if name in ("x", "y", "z") else (float(np.rad2deg(1.0)), "deg"))
+            parts.append(f"{name} {scale * change:+.3g} {unit}")
+    return ", ".join(parts)
+
+
 def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: Dict[str, str], hit: Dict[str, list],
                config: Optional[UncertaintyConfig]):
     """Sigma, weak parameters and verdict of every non-reference sensor; the prior replaces any estimate that the
@@ -220,6 +233,8 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
             sigma, loss_est, loss_prior, source = m.sigma, m.loss_estimate, m.loss_prior, "held-back pixels"
         elif entry is not None and "observability" in entry:
             sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
+            if entry.get("held_check"):  # the free parameters' spread when the held ones are released
+                sigma, source = list(np.fmax(sigma, entry["held_check"]["sigma_release"])), "LiDAR-first formal and release"
         elif entry is not None:  # a camera held at its camera-registration estimate
             sigma = [np.inf if v is None else float(v) for v in entry["sigma"]]
             loss_est, loss_prior, source = entry["loss_estimate"], entry["loss_prior"], "camera-registration pairs"
@@ -231,7 +246,10 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
             weak += [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step]
         weak = [p for p in PARAMETERS if p in weak]
         free = [] if sigma is None else [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= UNCONSTRAINED * step]
-        verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free, blind)
+        check = (entry or {}).get("held_check") or {}
+        held = (f"held at its prior, {', '.join(check['inconsistent'])} disagree with the scans (released, they move by "
+                f"{held_amounts(check)}): the free parameters absorbed that error" if check.get("inconsistent") else None)
+        verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free, blind, held)
         if keep_prior:  # the dataset's prior (rig.json), also for a LiDAR the NeRF started from the LiDAR-first estimate
             final.T_ref_sensor[name] = np.array(dataset_prior.T_ref_sensor[name], dtype=np.float64)
             final.time_offset[name] = float(dataset_prior.time_offset[name])

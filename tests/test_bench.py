@@ -128,6 +128,8 @@ def test_micro_bench_fills_every_section(tmp_path):
     (floor,) = result["floor"]  # seeds = "first": one rig
     assert (floor["layout"], floor["seed"], floor["scene_steps"], floor["register_steps"]) == ("street", 0, 6, 2)
     assert set(floor["floor"]) == {"cam_front_right", "cam_left", "lidar"} and floor["depth"]["camera_rays"] > 0
+    assert set(floor["stages"]["floor"]) == {"lidar"} and len(floor["stages"]["unfitted"]) == 2  # 6 frames: no camera fit
+    assert "Floor of the pre-NeRF stages" in md and "NeRF floor" in md
     assert (tmp_path / "out" / "bench_error_vs_time.png").stat().st_size > 1000
     after = (REPO / "docs" / "benchmarks.md").read_bytes() if (REPO / "docs" / "benchmarks.md").exists() else None
     assert after == before  # --docs not given: the repository is not touched

@@ -68,6 +68,18 @@ def test_floor_run(rig, tmp_path):
     for name, err in floor.items():
         assert all(np.isfinite(v) for v in err.values())
     assert (out / "moisst-lite" / "scene" / "config.yml").is_file()
+    stages = result["stages"]  # the stages' floor too; 6 frames are too few for the camera stage, so only the LiDAR's
+    assert set(stages["floor"]) == {"lidar"} and all(np.isfinite(v) for v in stages["floor"]["lidar"].values())
+    assert [u.split(":")[0] for u in stages["unfitted"]] == ["cam_front_right", "cam_left"] and "6 frames" in stages["unfitted"][0]
+    assert stages["map_depth"]["map_points"] > 1000
+
+
+def test_stage_floor_alone(rig, tmp_path):
+    """--no-nerf measures only the stages' floor: no scene is trained, no NeRF figures are written."""
+    result = run_floor(FloorConfig(dataset=rig, output_dir=tmp_path / "f", nerf=False, threads=1))
+    assert set(result) == {"method", "stages"} and not (tmp_path / "f" / "moisst-lite").exists()
+    with pytest.raises(FloorError, match="leave nothing to measure"):
+        run_floor(FloorConfig(dataset=rig, output_dir=tmp_path / "g", nerf=False, stages=False))
 
 
 def test_floor_needs_ground_truth(rig, tmp_path, capsys):

@@ -321,3 +321,40 @@ def test_calibrate_runs_the_stage_first_and_holds_the_lidar(tiny_rigs, tmp_path)
     plain = tmp_path / "plain"
     run_calibration(CalibrateConfig(dataset=dataset, output_dir=plain, max_num_iterations=4, seed=0, threads=2, report=False, lidar_first=False))
     assert not (plain / "lidar_first").exists() and "lidar_first" not in json.loads((plain / "summary.json").read_text())
+
+
+def test_release_check_flags_a_wrong_held_time_offset(tiny_rigs):
+    """Held 100 ms off, the time offset disagrees with the scans (released, it moves back by about 100 ms) and the
+    extrinsic, which absorbed it, gets a sigma that covers its error within 3 sigma (its formal sigma alone is
+    conditional on the held value: hundreds of times too small); held at the truth, nothing is flagged and the
+    extrinsic is right."""
+    import dataclasses
+
+    from moisst_ns.rig.trust import parameter_difference
+    from moisst_ns.stages.lidar_first import LidarFirstConfig, calibrate_lidar
+
+    rig = load_rig(tiny_rigs["raw"])
+    truth = load_calibration(rig.root / "ground_truth.json")
+    held = LidarFirstConfig(estimate_time_offset=False)
+    wrong = calibrate_lidar(rig, "lidar", held, log=lambda s: None)
+    check = wrong.held_check
+    assert check["held"] == ["time_offset"] and check["inconsistent"] == ["time_offset"]
+    true_shift = truth.time_offset["lidar"] - rig.sensors["lidar"].time_offset
+    assert abs(check["released_change"][6] - true_shift) < 0.005, (check["released_change"][6], true_shift)
+    error = np.abs(parameter_difference(truth.T_ref_sensor["lidar"], truth.time_offset["lidar"], wrong.estimate.matrix(), wrong.estimate.time_offset))
+    formal = np.array([d.sigma for d in wrong.observability.dofs])
+    sigma = np.fmax(formal, check["sigma_release"])
+    assert np.max(error[:6] / formal[:6]) > 10 and np.all(error[:6] <= 3 * sigma[:6]), (error, formal, sigma)
+
+    spec = dataclasses.replace(rig.sensors["lidar"], time_offset=truth.time_offset["lidar"])
+    right = calibrate_lidar(dataclasses.replace(rig, sensors={**rig.sensors, "lidar": spec}), "lidar", held, log=lambda s: None)
+    assert right.held_check["inconsistent"] == []
+    assert calibration_report_errors_of(right, truth)["translation_cm"] < 1.0
+
+
+def calibration_report_errors_of(result, truth):
+    from moisst_ns.rig.format import Calibration
+
+    estimate = Calibration(truth.reference_sensor, {**truth.T_ref_sensor, result.sensor: result.estimate.matrix()},
+                           {**truth.time_offset, result.sensor: result.estimate.time_offset})
+    return calibration_report_errors(estimate, truth)[result.sensor]

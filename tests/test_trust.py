@@ -256,3 +256,13 @@ def test_coverage_counts_errors_within_three_sigma_and_too_wide_sigmas(tmp_path)
     assert (s["within_3sigma"], s["finite"]) == (7, 7)
     assert [(k, round(u, 2)) for _, _, k, u in s["too_wide"]] == [("translation", 86.6), ("rotation", 34.64), ("time offset", 20.0)]
     assert "7 of 7" in "\n".join(coverage_markdown(s))
+
+
+def test_verdict_of_a_fit_whose_held_parameters_disagree():
+    """A fit whose held parameters disagree with the data is not converged (its estimate kept, as asked), before the
+    weak and bound checks; without it the same fit is converged."""
+    from moisst_ns.rig.trust import decide_verdict
+
+    reason = "held at its prior, time_offset disagree with the scans"
+    assert decide_verdict(None, None, None, ["z"], ["x"], held=reason) == ("not converged", reason, False)
+    assert decide_verdict(None, None, None, [], [])[0] == "converged"

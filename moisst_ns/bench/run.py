@@ -180,7 +180,7 @@ def floor_cases(out: Path, raw: dict, perturb: dict) -> List[dict]:
     lidar_scene); the method preset's own rays per step.
 
     Returns:
-        Per rig: ``{"layout", "seed", "scene_steps", "register_steps", "wall_s", "floor", "depth"}``.
+        Per rig: ``{"layout", "seed", "scene_steps", "register_steps", "wall_s", "floor", "depth", "stages"}``.
     """
     from moisst_ns.floor import FloorConfig, run_floor
 
@@ -195,7 +195,8 @@ def floor_cases(out: Path, raw: dict, perturb: dict) -> List[dict]:
                                          seed=seed, depth_check_rays=spec.get("depth_rays", 4096),
                                          lidar_scene=bool(spec.get("lidar_scene", False))))
         floors.append({"layout": layout, "seed": seed, "scene_steps": measured["scene_steps"], "register_steps": measured["register_steps"],
-                       "wall_s": time.perf_counter() - started, "floor": measured["floor"], "depth": measured["depth"]})
+                       "wall_s": time.perf_counter() - started, "floor": measured["floor"], "depth": measured["depth"],
+                       "stages": measured.get("stages")})
     return floors
 
 

@@ -163,14 +163,29 @@ def floor_markdown(floors: List[dict]) -> List[str]:
     """The floor section: per rig, each sensor's floor and the scene's depth errors (``moisst_ns.floor``).
 
     Args:
-        floors: ``{"layout", "seed", "scene_steps", "register_steps", "wall_s", "floor", "depth"}`` per rig.
+        floors: ``{"layout", "seed", "scene_steps", "register_steps", "wall_s", "floor", "depth"}`` per rig, and
+            ``"stages"`` (``moisst_ns.floor.stages_floor``) where the stages' floor was measured.
 
     Returns:
         Markdown lines (none when no floor was measured).
     """
     if not floors:
         return []
-    lines = ["## Floor: the scene trained at the truth, the calibration released at the truth (`moisst-floor`)", "",
+    staged = [f for f in floors if f.get("stages")]
+    lines = []
+    if staged:
+        lines += ["## Floor of the pre-NeRF stages: LiDAR first and the camera registration started at the truth (`moisst-floor`)", "",
+                  "| rig | sensor | translation (cm) | rotation (°) | time (ms) | LiDAR-map depth error where the cameras look, median / p90 (cm) |",
+                  "| --- | --- | --- | --- | --- | --- |"]
+        for f in staged:
+            st = f["stages"]
+            depth = st.get("map_depth", {})
+            map_cell = f"{depth['median_abs_m'] * 100:.2f} / {depth['p90_abs_m'] * 100:.2f}" if depth.get("camera_rays") else "–"
+            for sensor, e in sorted(st["floor"].items()):
+                lines.append(f"| {f['layout']} s{f['seed']} | {sensor} | {e['translation_cm']:.2f} | {e['rotation_deg']:.3f} | {e['time_ms']:.2f} | {map_cell} |")
+            lines += [f"| {f['layout']} s{f['seed']} | {u.split(':')[0]} | not fitted: {u.split(':', 1)[1].strip()} | | | |" for u in st.get("unfitted", [])]
+        lines.append("")
+    lines += ["## NeRF floor: the scene trained at the truth, the calibration released at the truth (`moisst-floor`)", "",
              "| rig | scene / register steps | sensor | translation (cm) | rotation (°) | time (ms) | camera-ray depth error, median (cm) | LiDAR-ray depth error, median (cm) | wall (s) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for f in floors:

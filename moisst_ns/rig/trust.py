@@ -129,7 +129,7 @@ def parse_trust(entry: dict) -> Optional[SensorTrust]:
 
 def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], loss_prior: Optional[float],
                    weak: List[str], hit_bounds: List[str], unconstrained: Optional[List[str]] = None,
-                   blind: Optional[List[str]] = None) -> tuple:
+                   blind: Optional[List[str]] = None, held: Optional[str] = None) -> tuple:
     """The verdict of one sensor, its one-line reason, and whether to keep the prior instead of the estimate.
 
     Args:
@@ -143,6 +143,8 @@ def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], 
             times the typical prior error): the estimate of them is arbitrary.
         blind: parameters a typical prior error of which the sensor's view does not tell apart (camera registration's
             ``typical_error_significance``): the sensor was held at its prior.
+        held: why the parameters held at their priors disagree with the data (LiDAR first's ``release_check``), else
+            None: the free parameters absorbed that error.
 
     Returns:
         ``(verdict, reason, keep_prior)``: ``keep_prior`` when the held-back loss at the estimate is no better than at
@@ -159,6 +161,8 @@ def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], 
                 "at the prior: the prior is kept", True)
     if still_moving:
         return "not converged", f"still moving over its last estimates ({still_moving})", False
+    if held:
+        return "not converged", held, False
     if hit_bounds:
         return "not converged", f"ran into its bound on {', '.join(hit_bounds)}", False
     better = (f"; held-back loss {loss_estimate:.5g} vs {loss_prior:.5g} at the prior"

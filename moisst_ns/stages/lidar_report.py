@@ -44,6 +44,8 @@ def stage_summary(result: LidarFirstResult, config: LidarFirstConfig, prior: Cal
             "wall_s": r.wall_s, "history": r.history,
             "observability": [asdict(d) for d in r.observability.dofs], "weak": r.observability.weak,
         }
+        if r.held_check is not None:
+            entry["held_check"] = r.held_check
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry
