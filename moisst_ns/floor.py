@@ -343,8 +343,8 @@ def floor_summary(result: dict) -> str:
         lines += [f"  not fitted: {reason}" for reason in stages["unfitted"]]
         depth = stages.get("map_depth", {})
         if depth.get("camera_rays"):
-            lines.append(f"LiDAR-map depth error where the cameras' fits look: median {depth['median_abs_m'] * 100:.1f} cm, "
-                         f"90th percentile {depth['p90_abs_m'] * 100:.1f} cm ({depth['camera_rays']} rays, {depth['map_points']} map points)")
+            lines.append(f"LiDAR-map depth error where the cameras' fits look: median {depth['median_abs_m'] * 1000:.3g} mm, "
+                         f"90th percentile {depth['p90_abs_m'] * 1000:.3g} mm ({depth['camera_rays']} rays, {depth['map_points']} map points)")
     if "floor" in result:
         lines.append(format_error_table(f"NeRF floor ({result['scene_steps']} scene steps at the truth, then {result['register_steps']} "
                                         "calibration steps from the truth against the frozen scene):", result["floor"]))

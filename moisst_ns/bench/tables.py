@@ -175,12 +175,12 @@ def floor_markdown(floors: List[dict]) -> List[str]:
     lines = []
     if staged:
         lines += ["## Floor of the pre-NeRF stages: LiDAR first and the camera registration started at the truth (`moisst-floor`)", "",
-                  "| rig | sensor | translation (cm) | rotation (°) | time (ms) | LiDAR-map depth error where the cameras look, median / p90 (cm) |",
+                  "| rig | sensor | translation (cm) | rotation (°) | time (ms) | LiDAR-map depth error where the cameras look, median / p90 (mm) |",
                   "| --- | --- | --- | --- | --- | --- |"]
         for f in staged:
             st = f["stages"]
             depth = st.get("map_depth", {})
-            map_cell = f"{depth['median_abs_m'] * 100:.2f} / {depth['p90_abs_m'] * 100:.2f}" if depth.get("camera_rays") else "–"
+            map_cell = f"{depth['median_abs_m'] * 1000:.3g} / {depth['p90_abs_m'] * 1000:.3g}" if depth.get("camera_rays") else "–"
             for sensor, e in sorted(st["floor"].items()):
                 lines.append(f"| {f['layout']} s{f['seed']} | {sensor} | {e['translation_cm']:.2f} | {e['rotation_deg']:.3f} | {e['time_ms']:.2f} | {map_cell} |")
             lines += [f"| {f['layout']} s{f['seed']} | {u.split(':')[0]} | not fitted: {u.split(':', 1)[1].strip()} | | | |" for u in st.get("unfitted", [])]

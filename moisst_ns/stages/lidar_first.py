@@ -372,8 +372,9 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
 
     A held parameter is inconsistent when freeing it moves it by more than three formal sigmas and a tenth of a typical
     prior error (1 cm, 0.1 deg, 1 ms): the scans agree better elsewhere, so the value it was held at is likely wrong
-    and the free parameters absorbed that error. How far the free parameters move on release is their error from the
-    held ones, which their formal sigma (conditional on the held values) does not contain.
+    and the free parameters absorbed that error. How far each parameter moves on release is the data's measure of its
+    error: for a free one the error the held values put into it, which its formal sigma (conditional on the held
+    values) does not contain; for a held one how far the data put it from where it was held.
 
     Args:
         estimate: the fit with some parameters held at the prior.
@@ -383,7 +384,7 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
 
     Returns:
         ``{"held": [...], "released_change": [7], "inconsistent": [...], "sigma_release": [7]}`` in
-        ``observability.PARAMETERS`` order (m, rad, s); ``sigma_release`` is 0 for held parameters.
+        ``observability.PARAMETERS`` order (m, rad, s); ``sigma_release`` is ``|released_change|``.
     """
     change = difference(estimate, released)
     is_free = np.isin(np.asarray(JACOBIAN_ORDER), free)
@@ -392,7 +393,7 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
     inconsistent = [p for p, f, c, s, step in zip(PARAMETERS, is_free, change, sigma, TEST_STEPS)
                     if not f and abs(c) > max(3.0 * s, 0.1 * step)]
     return {"held": held, "released_change": change.tolist(), "inconsistent": inconsistent,
-            "sigma_release": np.where(is_free, np.abs(change), 0.0).tolist()}
+            "sigma_release": np.abs(change).tolist()}
 
 
 def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callable[[str], None] = print) -> LidarResult:
