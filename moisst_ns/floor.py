@@ -118,6 +118,16 @@ def camera_depth_errors(
     return {"camera_rays": int(err.size), "median_abs_m": float(np.median(err)), "p90_abs_m": float(np.percentile(err, 90))}
 
 
+def synthetic_scene(rig_root: Path):
+    """``(SynthConfig, ray-castable scene)`` of a ``moisst-synth`` rig (its rig.json ``metadata`` names it), else
+    ``(None, None)``."""
+    from moisst_ns.datasets.synth import build_scene
+    from moisst_ns.datasets.synth_truth import config_of_rig
+
+    synth = config_of_rig(json.loads((rig_root / "rig.json").read_text()).get("metadata", {}))
+    return (synth, build_scene(synth)) if synth is not None else (None, None)
+
+
 def scene_depth_check(pipeline, rig_root: Path, num_rays: int) -> Dict[str, float]:
     """Median depth errors of the trained scene (at the true calibration): camera rays against the exact synthetic
     scene (``moisst-synth`` rigs only) and LiDAR rays against their measured range.
@@ -133,12 +143,9 @@ def scene_depth_check(pipeline, rig_root: Path, num_rays: int) -> Dict[str, floa
     """
     import torch
 
-    from moisst_ns.datasets.synth import build_scene
-    from moisst_ns.datasets.synth_truth import config_of_rig, in_lidar_field
+    from moisst_ns.datasets.synth_truth import in_lidar_field
 
-    metadata = json.loads((Path(rig_root) / "rig.json").read_text()).get("metadata", {})
-    synth = config_of_rig(metadata)
-    scene = build_scene(synth) if synth is not None else None
+    synth, scene = synthetic_scene(Path(rig_root))
     model, datamanager = pipeline.model, pipeline.datamanager
     optimizer = model.camera_optimizer
     rig = optimizer.rig
@@ -231,15 +238,11 @@ def run_floor(cfg: FloorConfig) -> dict:
 def stages_floor(rig, truth) -> dict:
     """``stage_floor.stage_floor`` (LiDAR first and the camera registration started at the truth) and, on
     ``moisst-synth`` rigs with a LiDAR, ``stage_floor.map_depth_errors`` (the LiDAR map against the true scene)."""
-    from moisst_ns.datasets.synth import build_scene
-    from moisst_ns.datasets.synth_truth import config_of_rig
     from moisst_ns.stages.stage_floor import map_depth_errors, stage_floor
 
     measured = stage_floor(rig, truth, log=lambda line: None)
-    metadata = json.loads((rig.root / "rig.json").read_text()).get("metadata", {})
-    synth = config_of_rig(metadata)
-    if synth is not None and any(s.type == "lidar" for s in rig.sensors.values()):
-        scene = build_scene(synth)
+    scene = synthetic_scene(rig.root)[1] if any(s.type == "lidar" for s in rig.sensors.values()) else None
+    if scene is not None:
         measured["map_depth"] = map_depth_errors(rig, truth, lambda o, d: scene.cast(o, d)["t_hit"].astype(np.float64))
     return measured
 

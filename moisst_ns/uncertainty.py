@@ -179,19 +179,6 @@ def trust_entry(sigma: Optional[List[float]], verdict: str, weak: List[str], rea
     return SensorTrust([float(s) for s in sigma[:3]], [float(np.rad2deg(s)) for s in sigma[3:6]], float(sigma[6]), verdict, weak, reason)
 
 
-def held_amounts(check: dict) -> str:
-    """The release of each inconsistent held parameter (``lidar_first.release_check``) in cm, deg or ms."""
-    from moisst_ns.rig.trust import PARAMETERS
-
-    units = {"time_offset": (1000.0, "ms")}
-    parts = []
-    for name, change in zip(PARAMETERS, check["released_change"]):
-        if name in check["inconsistent"]:
-            scale, unit = units.get(name, (100.0, "cm") if name in ("x", "y", "z") else (float(np.rad2deg(1.0)), "deg"))
-            parts.append(f"{name} {scale * change:+.3g} {unit}")
-    return ", ".join(parts)
-
-
 def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: Dict[str, str], hit: Dict[str, list],
                config: Optional[UncertaintyConfig]):
     """Sigma, weak parameters and verdict of every non-reference sensor; the prior replaces any estimate that the
@@ -247,8 +234,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         weak = [p for p in PARAMETERS if p in weak]
         free = [] if sigma is None else [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= UNCONSTRAINED * step]
         check = (entry or {}).get("held_check") or {}
-        held = (f"held at its prior, {', '.join(check['inconsistent'])} disagree with the scans (released, they move by "
-                f"{held_amounts(check)}): the free parameters absorbed that error" if check.get("inconsistent") else None)
+        held = f"{check['note']}: the free parameters absorbed that error" if check.get("note") else None
         verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free, blind, held)
         if keep_prior:  # the dataset's prior (rig.json), also for a LiDAR the NeRF started from the LiDAR-first estimate
             final.T_ref_sensor[name] = np.array(dataset_prior.T_ref_sensor[name], dtype=np.float64)

@@ -339,6 +339,7 @@ def test_release_check_flags_a_wrong_held_time_offset(tiny_rigs):
     wrong = calibrate_lidar(rig, "lidar", held, log=lambda s: None)
     check = wrong.held_check
     assert check["held"] == ["time_offset"] and check["inconsistent"] == ["time_offset"]
+    assert check["note"].startswith("held at its prior, time_offset disagree with the scans (released, they move by time_offset ")
     true_shift = truth.time_offset["lidar"] - rig.sensors["lidar"].time_offset
     assert abs(check["released_change"][6] - true_shift) < 0.005, (check["released_change"][6], true_shift)
     error = np.abs(parameter_difference(truth.T_ref_sensor["lidar"], truth.time_offset["lidar"], wrong.estimate.matrix(), wrong.estimate.time_offset))
@@ -348,7 +349,7 @@ def test_release_check_flags_a_wrong_held_time_offset(tiny_rigs):
 
     spec = dataclasses.replace(rig.sensors["lidar"], time_offset=truth.time_offset["lidar"])
     right = calibrate_lidar(dataclasses.replace(rig, sensors={**rig.sensors, "lidar": spec}), "lidar", held, log=lambda s: None)
-    assert right.held_check["inconsistent"] == []
+    assert right.held_check["inconsistent"] == [] and right.held_check["note"] == ""
     assert calibration_report_errors_of(right, truth)["translation_cm"] < 1.0
 
 

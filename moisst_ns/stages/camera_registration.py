@@ -171,6 +171,7 @@ class CameraResult:
     sigma_resolution: List[float] = field(default_factory=list)
     """The resolution part of ``sigma`` (``camera_guards.resolution_spread``; zeros when ``resolution_spread`` is off)."""
 
+
 def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
     pose = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(theta[:3]), torch.from_numpy(theta[3:6]))
     return pose.numpy(), prior_offset + float(theta[6])

@@ -31,6 +31,7 @@ from jaxtyping import Float, Int
 from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
+from moisst_ns.rig.trust import parameter_difference
 from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, Trajectory, place_points, placement_jacobian, trajectory_at
 from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, Observability, analyse_observability
 
@@ -357,16 +358,6 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
     return ext, history
 
 
-def difference(a: Extrinsic, b: Extrinsic) -> Float[np.ndarray, "7"]:
-    """``b`` minus ``a`` in ``observability.PARAMETERS`` order: translation (m, reference frame), rotation vector of
-    ``R_a^T R_b`` (rad, about the sensor's own axes), time offset (s)."""
-    import roma
-    import torch
-
-    rot = roma.rotmat_to_rotvec(torch.from_numpy(a.rotation.T @ b.rotation)).numpy()
-    return np.r_[b.translation - a.translation, rot, b.time_offset - a.time_offset]
-
-
 def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, observability: Observability) -> Dict[str, object]:
     """Are the held parameters consistent with the scans? Compare the held fit with one that also frees them.
 
@@ -383,17 +374,20 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
         observability: of the held fit (its formal sigma per parameter).
 
     Returns:
-        ``{"held": [...], "released_change": [7], "inconsistent": [...], "sigma_release": [7]}`` in
-        ``observability.PARAMETERS`` order (m, rad, s); ``sigma_release`` is ``|released_change|``.
+        ``{"held": [...], "released_change": [7], "inconsistent": [...], "sigma_release": [7], "note"}`` in
+        ``observability.PARAMETERS`` order (m, rad, s); ``sigma_release`` is ``|released_change|``; ``note`` says which
+        held parameters disagree and by how much (empty when none does).
     """
-    change = difference(estimate, released)
+    change = np.asarray(parameter_difference(estimate.matrix(), estimate.time_offset, released.matrix(), released.time_offset))
     is_free = np.isin(np.asarray(JACOBIAN_ORDER), free)
     sigma = np.array([d.sigma for d in observability.dofs])
     held = [p for p, f in zip(PARAMETERS, is_free) if not f]
     inconsistent = [p for p, f, c, s, step in zip(PARAMETERS, is_free, change, sigma, TEST_STEPS)
                     if not f and abs(c) > max(3.0 * s, 0.1 * step)]
+    moves = ", ".join(_amount(p, c) for p, c in zip(PARAMETERS, change) if p in inconsistent)
+    note = f"held at its prior, {', '.join(inconsistent)} disagree with the scans (released, they move by {moves})" if inconsistent else ""
     return {"held": held, "released_change": change.tolist(), "inconsistent": inconsistent,
-            "sigma_release": np.abs(change).tolist()}
+            "sigma_release": np.abs(change).tolist(), "note": note}
 
 
 def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callable[[str], None] = print) -> LidarResult:
@@ -427,18 +421,17 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     if len(free) < 7 and config.release_check:
         released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where)
         held = release_check(ext, released, free, observability)
-        if held["inconsistent"]:
-            log(f"[lidar-first] {sensor}: held at its prior, {', '.join(held['inconsistent'])} disagree with the scans (released, "
-                f"they move by {', '.join(_amount(p, c) for p, c in zip(PARAMETERS, held['released_change']) if p in held['inconsistent'])})")
+        if held["note"]:
+            log(f"[lidar-first] {sensor}: {held['note']}")
     return LidarResult(sensor, prior, ext, history, observability, len(scans.stamps), scans.deskewed, scans.dropped,
                        time.perf_counter() - start, held)
 
 
 def _amount(parameter: str, value: float) -> str:
-    """A parameter difference in cm, deg or ms."""
+    """A parameter difference (m, rad or s) as ``name +N cm|deg|ms``."""
     if parameter == "time_offset":
-        return f"{1000 * value:+.1f} ms"
-    return f"{100 * value:+.1f} cm" if parameter in ("x", "y", "z") else f"{np.rad2deg(value):+.2f} deg"
+        return f"{parameter} {1000 * value:+.3g} ms"
+    return f"{parameter} {100 * value:+.3g} cm" if parameter in ("x", "y", "z") else f"{parameter} {np.rad2deg(value):+.3g} deg"
 
 
 @dataclass

@@ -69,6 +69,7 @@ def stage_floor(rig: Rig, truth: Calibration, lidar_config: Optional[LidarFirstC
     config = dataclasses.replace(camera_config or CameraRegistrationConfig(), feature_start=False, split_half=False, min_significance=0.0)
     floor = Calibration(truth.reference_sensor, dict(calibration.T_ref_sensor), dict(calibration.time_offset))
     unfitted: List[str] = []
+    fitted = set(lidars)
     if camera_sensors(at_truth):
         # the map from the LiDAR at the truth: the camera floor is the camera stage's own, not LiDAR-first's
         result = register_cameras(at_truth, Calibration.from_rig(at_truth), config, sensors=cameras, log=log)
@@ -78,7 +79,7 @@ def stage_floor(rig: Rig, truth: Calibration, lidar_config: Optional[LidarFirstC
                 continue
             last = r.history[-1]  # the fit's last estimate, whatever the guards said
             floor.T_ref_sensor[name], floor.time_offset[name] = np.asarray(last["T_ref_sensor"]), float(last["time_offset"])
-    fitted = set(lidars) | {name for name in (cameras or camera_sensors(at_truth)) if not any(u.startswith(f"{name}:") for u in unfitted)}
+            fitted.add(name)
     errors = {name: e for name, e in calibration_report_errors(floor, truth).items() if name in fitted}
     return {"floor": errors, "unfitted": unfitted, "lidar_s": lidar_s, "camera_s": time.perf_counter() - start - lidar_s}
 
