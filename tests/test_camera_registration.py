@@ -308,3 +308,12 @@ def test_stage_floor_and_map_depth(rig_folder):
     shifted.T_ref_sensor["lidar"] = lidar_up
     wrong = map_depth_errors(rig, shifted, cast)
     assert 0.08 < wrong["median_abs_m"] < 0.25, wrong
+
+
+def test_resolution_spread_is_half_the_change_between_the_two_finest_levels():
+    """Exact values: the coarser levels do not count, one level gives no spread."""
+    from moisst_ns.stages.camera_guards import resolution_spread
+
+    levels = {8: np.full(7, 9.0), 2: np.arange(7.0), 1: np.arange(7.0) + np.r_[0.2, -0.4, 0, 0, 0, 0, 1.0]}
+    np.testing.assert_allclose(resolution_spread(levels), [0.1, 0.2, 0, 0, 0, 0, 0.5])
+    np.testing.assert_array_equal(resolution_spread({1: np.ones(7)}), np.zeros(7))
