@@ -317,3 +317,19 @@ def test_resolution_spread_is_half_the_change_between_the_two_finest_levels():
     levels = {8: np.full(7, 9.0), 2: np.arange(7.0), 1: np.arange(7.0) + np.r_[0.2, -0.4, 0, 0, 0, 0, 1.0]}
     np.testing.assert_allclose(resolution_spread(levels), [0.1, 0.2, 0, 0, 0, 0, 0.5])
     np.testing.assert_array_equal(resolution_spread({1: np.ones(7)}), np.zeros(7))
+
+
+def test_convergence_tail_is_aitkens_remaining_distance_or_the_last_two_steps():
+    """Exact values: a geometric descent (ratio 1/2 and -1/2) has its remaining distance, a step that did not shrink
+    gives the last two steps, a settled or short history nothing."""
+    from moisst_ns.stages.camera_guards import convergence_tail
+
+    rows = np.zeros((4, 7))
+    rows[:, 0] = [0.0, 8.0, 12.0, 14.0]  # steps 4, 2: 2 more to go
+    rows[:, 1] = [0.0, 8.0, 4.0, 6.0]  # steps -4, +2 (oscillating, ratio -1/2): 2/3 more to go
+    rows[:, 2] = [0.0, 1.0, 2.0, 3.5]  # steps 1, 1.5 (growing): 1 + 1.5 at least
+    rows[:, 3] = [5.0, 5.0, 5.0, 5.0]  # settled
+    rows[:, 4] = [0.0, 0.0, -1.0, -3.0]  # steps -1, -2 (growing, negative)
+    rows[:, 6] = [0.0, 1.0, 1.0, 1.0]  # settled after one step
+    np.testing.assert_allclose(convergence_tail(rows), [2.0, 2.0 / 3.0, 2.5, 0.0, 3.0, 0.0, 0.0])
+    np.testing.assert_array_equal(convergence_tail(rows[:2]), np.zeros(7))

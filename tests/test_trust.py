@@ -175,7 +175,7 @@ def test_a_blind_camera_keeps_its_prior_whatever_its_loss():
     assert decide_verdict(None, 0.01, 0.02, [], [], [], [])[0] == "converged"
 
 
-def _write(path, dx=0.0, roll_deg=0.0, ddelta=0.0, sigma=None, verdict=None):
+def _write(path, dx=0.0, roll_deg=0.0, ddelta=0.0, sigma=None, verdict=None, weak=()):
     import roma as _roma
 
     pose = np.eye(4)
@@ -185,7 +185,7 @@ def _write(path, dx=0.0, roll_deg=0.0, ddelta=0.0, sigma=None, verdict=None):
     if sigma is not None or verdict is not None:
         s = sigma or (None, None, None)
         trust["cam1"] = SensorTrust([s[0]] * 3 if s[0] is not None else None, [s[1]] * 3 if s[1] is not None else None, s[2],
-                                    verdict, [], "test")
+                                    verdict, list(weak), "test")
     Calibration("cam0", {"cam0": np.eye(4), "cam1": pose}, {"cam0": 0.0, "cam1": 0.02 + ddelta}, trust).write(path)
     return path
 
@@ -249,13 +249,33 @@ def test_coverage_counts_errors_within_three_sigma_and_too_wide_sigmas(tmp_path)
     assert row["sigma"][3] == pytest.approx(np.deg2rad(0.1))
     assert sensor_coverage(truth, truth) == {}  # no sigmas: nothing to judge
     s = coverage_summary({"tight": {"cam1": row}})
-    assert (s["within_3sigma"], s["finite"]) == (5, 7)  # roll 5 sigma and the time offset 5 sigma miss
+    assert (s["within_3sigma"], s["finite"]) == (1, 3)  # x within; roll and the time offset 5 sigma miss; zero errors: held
     assert sorted((m[2], round(m[3], 6)) for m in s["misses"]) == [("roll", 5.0), ("time_offset", 5.0)]
     assert s["too_wide"] == [] and s["largest_ratio"] == pytest.approx(0.01 / np.sqrt(0.02**2 / 3))
     s = coverage_summary({"wide": sensor_coverage(wide, truth)})
-    assert (s["within_3sigma"], s["finite"]) == (7, 7)
+    assert (s["within_3sigma"], s["finite"]) == (3, 3)
     assert [(k, round(u, 2)) for _, _, k, u in s["too_wide"]] == [("translation", 86.6), ("rotation", 34.64), ("time offset", 20.0)]
-    assert "7 of 7" in "\n".join(coverage_markdown(s))
+    assert "3 of 3" in "\n".join(coverage_markdown(s))
+
+
+def test_coverage_judges_weakly_observable_sensors_on_their_observable_kinds_and_lists_past_5_sigma(tmp_path):
+    """Without a converged sensor the 10x rule is still judged on the kinds with no weak parameter of a weakly
+    observable sensor, and its parameters beyond 5 sigma are listed; a sensor marked not converged is in neither."""
+    from moisst_ns.bench.coverage import coverage_markdown, coverage_summary, sensor_coverage
+
+    truth = _write(tmp_path / "truth.json")
+    weak = _write(tmp_path / "weak.json", dx=0.02, roll_deg=0.5, ddelta=0.004, sigma=(0.001, 0.05, 0.001), verdict="weakly observable",
+                  weak=("roll",))
+    row = sensor_coverage(weak, truth)["cam1"]
+    assert row["weak"] == ["roll"]
+    s = coverage_summary({"weak": {"cam1": row}})
+    assert s["converged_kinds"] == 0 and s["observable_kinds"] == 2  # translation and time offset; rotation has roll
+    assert s["observable_ratios"] == pytest.approx([0.001 / np.sqrt(0.02**2 / 3), 0.25])
+    assert [(m[2], round(m[3], 6)) for m in s["past_5sigma"]] == [("x", 20.0), ("roll", 10.0)]
+    assert "beyond 5 sigma of a sensor not marked not converged: 2" in "\n".join(coverage_markdown(s))
+    gone = _write(tmp_path / "gone.json", dx=0.02, roll_deg=0.5, ddelta=0.004, sigma=(0.001, 0.05, 0.001), verdict="not converged")
+    s = coverage_summary({"gone": sensor_coverage(gone, truth)})
+    assert s["observable_kinds"] == 0 and s["past_5sigma"] == [] and len(s["misses"]) == 3
 
 
 def test_verdict_of_a_fit_whose_held_parameters_disagree():

@@ -4,8 +4,8 @@
 ``held_back_check`` (is the estimate better than the prior on pairs the fit did not use?),
 ``typical_error_significance`` (can the data tell the estimate from a typical prior error, per correction?),
 ``split_half_spread`` (do the two halves of the drive agree?), ``resolution_spread`` (how much did the finest
-resolution move the estimate?) and ``reference_cost`` (what the reference camera's own
-frames get down to: the wrong-minimum test's yardstick). ``config`` is always the stage's
+resolution move the estimate?), ``convergence_tail`` (how far was the descent still going?) and ``reference_cost``
+(what the reference camera's own frames get down to: the wrong-minimum test's yardstick). ``config`` is always the stage's
 ``camera_registration.CameraRegistrationConfig``. Nothing here imports nerfstudio.
 """
 
@@ -165,6 +165,33 @@ def resolution_spread(level_end: Dict[int, np.ndarray]) -> Float[np.ndarray, "7"
     if len(levels) < 2:
         return np.zeros(7)
     return np.abs(level_end[levels[0]] - level_end[levels[1]]) / 2
+
+
+def convergence_tail(iterates: Float[np.ndarray, "n 7"]) -> Float[np.ndarray, "7"]:
+    """How far the descent may still be from where it was heading, from its last three iterates (Aitken's delta^2).
+
+    An iteration converging linearly, each step ``rho`` times the one before (``s2 = rho s1``; an oscillating one has
+    ``rho < 0``), has ``s2 rho / (1 - rho) = s2^2 / |s2 - s1|`` still to go after its last step ``s2``: Aitken's
+    delta^2 estimate of the remaining distance. Where the steps do not shrink (same sign, ``|s2| >= |s1|``) no limit
+    is in sight and the distance of the last two steps, ``|s1| + |s2|``, is taken (a lower bound). Outer iterations
+    stop on a step under a tenth of a pixel, which for a weakly observable correction can still be a sizeable step
+    (measured, quick benchmark 96x72: a time offset stepping 11.2, 1.4, 1.6 ms ended 12.6 ms from the truth, 5.2x
+    its sigma without this term, 4.3x with it).
+
+    Args:
+        iterates: the corrections after each outer iteration, in order, across pyramid levels (rad, m, s).
+
+    Returns:
+        Per correction, same units; zeros with fewer than three iterates.
+    """
+    if len(iterates) < 3:
+        return np.zeros(7)
+    a, b, c = (np.asarray(v, dtype=np.float64) for v in iterates[-3:])
+    s1, s2 = b - a, c - b
+    growing = (s1 * s2 > 0) & (np.abs(s2) >= np.abs(s1))
+    denominator = np.abs(s2 - s1)
+    aitken = np.divide(s2 ** 2, denominator, out=np.zeros(7), where=denominator > 0)
+    return np.where(growing, np.abs(s1) + np.abs(s2), aitken)
 
 
 def reference_cost(traj: ReferenceTrajectory, world: np.ndarray, reference: CameraFrames, calibration: Calibration,
