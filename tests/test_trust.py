@@ -279,10 +279,10 @@ def test_coverage_judges_weakly_observable_sensors_on_their_observable_kinds_and
 
 
 def test_verdict_of_a_fit_whose_held_parameters_disagree():
-    """A fit whose held parameters disagree with the data is not converged (its estimate kept, as asked), before the
-    weak and bound checks; without it the same fit is converged."""
+    """A fit whose held parameters disagree with the data is not converged and gives way to its prior (the free
+    parameters absorbed the held error), before the weak and bound checks; without it the same fit is converged."""
     from moisst_ns.rig.trust import decide_verdict
 
     reason = "held at its prior, time_offset disagree with the scans"
-    assert decide_verdict(None, None, None, ["z"], ["x"], held=reason) == ("not converged", reason, False)
+    assert decide_verdict(None, None, None, ["z"], ["x"], held=reason) == ("not converged", f"{reason}: the prior is kept", True)
     assert decide_verdict(None, None, None, [], [])[0] == "converged"

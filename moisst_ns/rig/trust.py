@@ -144,7 +144,8 @@ def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], 
         blind: parameters a typical prior error of which the sensor's view does not tell apart (camera registration's
             ``typical_error_significance``): the sensor was held at its prior.
         held: why the parameters held at their priors disagree with the data (LiDAR first's ``release_check``), else
-            None: the free parameters absorbed that error.
+            None: the free parameters absorbed that error, by an amount of the held error's size (measured: 101 cm from
+            the truth for a LiDAR whose prior was 86.6 cm off, delta held 100 ms off), so the prior is kept.
 
     Returns:
         ``(verdict, reason, keep_prior)``: ``keep_prior`` when the held-back loss at the estimate is no better than at
@@ -162,7 +163,7 @@ def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], 
     if still_moving:
         return "not converged", f"still moving over its last estimates ({still_moving})", False
     if held:
-        return "not converged", held, False
+        return "not converged", f"{held}: the prior is kept", True
     if hit_bounds:
         return "not converged", f"ran into its bound on {', '.join(hit_bounds)}", False
     better = (f"; held-back loss {loss_estimate:.5g} vs {loss_prior:.5g} at the prior"
