@@ -359,3 +359,43 @@ def calibration_report_errors_of(result, truth):
     estimate = Calibration(truth.reference_sensor, {**truth.T_ref_sensor, result.sensor: result.estimate.matrix()},
                            {**truth.time_offset, result.sensor: result.estimate.time_offset})
     return calibration_report_errors(estimate, truth)[result.sensor]
+
+
+def test_split_half_spread_exact_values():
+    """Half the difference of the two halves' fits, each half fitted on the pairs wholly inside it; inf when a half has
+    no pair or cannot be fitted."""
+    from moisst_ns.stages.lidar_checks import split_half_spread
+
+    pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [1, 4]])
+    seen = []
+
+    def fit(p, b):
+        seen.append(p.tolist())
+        shift = 0.02 if p.min() >= 3 else 0.0
+        return Extrinsic(np.eye(3), np.array([shift, 0.0, 0.0]), 0.004 if shift else 0.001)
+
+    spread = split_half_spread(fit, pairs, np.ones(len(pairs)), 6)
+    assert seen == [[[0, 1], [1, 2]], [[3, 4], [4, 5]]]  # pairs across the middle (2-3, 1-4) are in neither half
+    np.testing.assert_allclose(spread, [0.01, 0, 0, 0, 0, 0, 0.0015], atol=1e-12)
+    assert np.all(np.isinf(split_half_spread(fit, np.array([[0, 5]]), np.ones(1), 6)))
+    assert np.all(np.isinf(split_half_spread(lambda p, b: None, pairs, np.ones(len(pairs)), 6)))
+
+
+def test_split_half_sigma_covers_a_short_drive_the_formal_sigma_does_not(tiny_rigs, tmp_path):
+    """Six scans (0.6 s, about 2 m of nearly straight driving): the lever arm is barely determined, the estimate is
+    centimetres to decimetres off with a formal sigma many times smaller; the halves of the drive disagree by as much,
+    so every parameter's error is within 3x the larger of the two sigmas."""
+    from moisst_ns.rig.trust import parameter_difference
+    from moisst_ns.stages.lidar_first import calibrate_lidar
+
+    short = copy_rig(tiny_rigs["raw"], tmp_path / "short")
+    keep = tuple(f"{k:06d}.npz" for k in range(6))
+    edit_rig(short, lambda d: d.update(frames=[f for f in d["frames"] if f["sensor"] != "lidar" or f["file_path"].endswith(keep)]))
+    rig = load_rig(short)
+    truth = load_calibration(rig.root / "ground_truth.json")
+    result = calibrate_lidar(rig, "lidar", LidarFirstConfig(), log=lambda s: None)
+    error = np.abs(parameter_difference(truth.T_ref_sensor["lidar"], truth.time_offset["lidar"], result.estimate.matrix(), result.estimate.time_offset))
+    formal = np.array([d.sigma for d in result.observability.dofs])
+    split = np.array(result.sigma_split)
+    assert np.max(error / formal) > 5, (error, formal)
+    assert np.all(error <= 3 * np.fmax(formal, split)), (error, formal, split)
