@@ -221,7 +221,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         elif entry is not None and "observability" in entry:
             sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
             if entry.get("sigma_split_half"):  # the two halves of the drive fitted apart
-                sigma, source = list(np.fmax(sigma, [np.inf if v is None else v for v in entry["sigma_split_half"]])), "LiDAR-first formal and split-half"
+                sigma, source = list(np.fmax(sigma, [np.nan if v is None else v for v in entry["sigma_split_half"]])), "LiDAR-first formal and split-half"
             if entry.get("held_check"):  # the free parameters' spread when the held ones are released
                 sigma, source = list(np.fmax(sigma, entry["held_check"]["sigma_release"])), source + " and release"
         elif entry is not None:  # a camera held at its camera-registration estimate

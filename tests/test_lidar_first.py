@@ -362,8 +362,8 @@ def calibration_report_errors_of(result, truth):
 
 
 def test_split_half_spread_exact_values():
-    """Half the difference of the two halves' fits, each half fitted on the pairs wholly inside it; inf when a half has
-    no pair or cannot be fitted."""
+    """Half the difference of the two halves' fits, each half fitted on the pairs wholly inside it; NaN (not measured)
+    when a half has no pair or cannot be fitted."""
     from moisst_ns.stages.lidar_checks import split_half_spread
 
     pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [1, 4]])
@@ -377,8 +377,8 @@ def test_split_half_spread_exact_values():
     spread = split_half_spread(fit, pairs, np.ones(len(pairs)), 6)
     assert seen == [[[0, 1], [1, 2]], [[3, 4], [4, 5]]]  # pairs across the middle (2-3, 1-4) are in neither half
     np.testing.assert_allclose(spread, [0.01, 0, 0, 0, 0, 0, 0.0015], atol=1e-12)
-    assert np.all(np.isinf(split_half_spread(fit, np.array([[0, 5]]), np.ones(1), 6)))
-    assert np.all(np.isinf(split_half_spread(lambda p, b: None, pairs, np.ones(len(pairs)), 6)))
+    assert np.all(np.isnan(split_half_spread(fit, np.array([[0, 5]]), np.ones(1), 6)))
+    assert np.all(np.isnan(split_half_spread(lambda p, b: None, pairs, np.ones(len(pairs)), 6)))
 
 
 def test_split_half_sigma_covers_a_short_drive_the_formal_sigma_does_not(tiny_rigs, tmp_path):

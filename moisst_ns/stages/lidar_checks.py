@@ -67,15 +67,16 @@ def split_half_spread(fit: Callable[[np.ndarray, np.ndarray], Optional[Extrinsic
         num_scans: how many scans the drive has.
 
     Returns:
-        Per parameter of ``observability.PARAMETERS`` (m, rad, s); inf everywhere when a half has no pair or no fit.
+        Per parameter of ``observability.PARAMETERS`` (m, rad, s); NaN everywhere (not measured, not "undetermined":
+        the whole drive may still determine them) when a half has no pair or cannot be fitted.
     """
     middle = num_scans // 2
     halves = [(pairs[:, 1] < middle), (pairs[:, 0] >= middle)]
     if not all(h.any() for h in halves):
-        return np.full(7, np.inf)
+        return np.full(7, np.nan)
     first, second = (fit(pairs[h], baselines[h]) for h in halves)
     if first is None or second is None:
-        return np.full(7, np.inf)
+        return np.full(7, np.nan)
     return np.abs(np.asarray(parameter_difference(first.matrix(), first.time_offset, second.matrix(), second.time_offset))) / 2
 
 

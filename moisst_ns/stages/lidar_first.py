@@ -300,8 +300,8 @@ class LidarResult:
     """With a parameter held at its prior: ``release_check`` (which held parameters disagree with the scans, and the
     free parameters' spread when they are released), else None."""
     sigma_split: Optional[List[float]] = None
-    """``split_half_spread`` in ``observability.PARAMETERS`` order (m, rad, s; inf where a half cannot be fitted), or
-    None when ``split_half`` is off."""
+    """``split_half_spread`` in ``observability.PARAMETERS`` order (m, rad, s; NaN where a half cannot be fitted: not
+    measured), or None when ``split_half`` is off."""
 
 
 def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndarray, start: Extrinsic, prior: Extrinsic, free: np.ndarray,
@@ -411,7 +411,8 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
                 return None
 
         split = split_half_spread(half, pairs, baselines, len(scans.stamps)).tolist()
-        log(f"[lidar-first] {sensor}: halves of the drive apart by " + ", ".join(f"{p} {2 * v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, split, UNITS)))
+        log(f"[lidar-first] {sensor}: " + ("the halves of the drive cannot be fitted apart (split-half sigma not measured)" if np.isnan(split).any() else
+            "halves of the drive apart by " + ", ".join(f"{p} {2 * v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, split, UNITS))))
     return LidarResult(sensor, prior, ext, history, observability, len(scans.stamps), scans.deskewed, scans.dropped,
                        time.perf_counter() - start, held, split)
 

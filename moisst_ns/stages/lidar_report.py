@@ -46,7 +46,7 @@ def stage_summary(result: LidarFirstResult, config: LidarFirstConfig, prior: Cal
         }
         if r.held_check is not None:
             entry["held_check"] = r.held_check
-        if r.sigma_split is not None:  # half the difference of the drive's two halves (inf: a half could not be fitted)
+        if r.sigma_split is not None:  # half the difference of the drive's two halves (None: a half could not be fitted)
             entry["sigma_split_half"] = [float(v) if np.isfinite(v) else None for v in r.sigma_split]
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
