@@ -166,10 +166,6 @@ def nerf_uncertainties(pipeline, config: UncertaintyConfig) -> Dict[str, SensorU
     return out
 
 
-SIGMA_UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
-"""Display scale and unit of each of the 7 sigmas (stored in m, rad, s)."""
-
-
 def trust_entry(sigma: Optional[List[float]], verdict: str, weak: List[str], reason: str):
     """A ``SensorTrust`` from 7 sigmas in m / rad / s (None: not measured)."""
     from moisst_ns.rig.trust import SensorTrust
@@ -199,7 +195,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
     """
     from moisst_ns.rig.format import Calibration
     from moisst_ns.rig.trust import PARAMETERS, UNCONSTRAINED, decide_verdict
-    from moisst_ns.stages.observability import TEST_STEPS
+    from moisst_ns.stages.observability import TEST_STEPS, UNITS
 
     start = time.time()
     from moisst_ns.runs.folder import prior_calibration
@@ -249,7 +245,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
     head = f"{'sensor':<12}" + "".join(f"{'s_' + p:>14}" for p in PARAMETERS) + "  verdict"
     table = ["uncertainty (1 sigma: cm, deg, ms) and verdict per sensor:", head]
     for name, r in record.items():
-        cells = ["-" if r["sigma"] is None else "inf" if r["sigma"][k] is None else f"{r['sigma'][k] * SIGMA_UNITS[k][0]:.3g}" for k in range(7)]
+        cells = ["-" if r["sigma"] is None else "inf" if r["sigma"][k] is None else f"{r['sigma'][k] * UNITS[k][0]:.3g}" for k in range(7)]
         table.append(f"{name:<12}" + "".join(f"{c:>14}" for c in cells) + f"  {r['verdict']}: {r['reason']}")
     wall = time.time() - start
     table.append(f"(sigma from {', '.join(sorted({r['sigma_source'] for r in record.values()}))}; {wall:.1f} s)")

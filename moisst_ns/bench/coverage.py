@@ -64,10 +64,11 @@ def coverage_summary(runs: Dict[str, Dict[str, dict]]) -> dict:
     Returns:
         ``{"within_3sigma": k, "finite": n, "fraction": k / n (nan if n == 0), "misses": [(run, sensor, parameter,
         |error| / sigma, verdict)], "converged_kinds": m, "too_wide": [(run, sensor, kind, rms sigma / rms error)],
-        "largest_ratio": float, "observable_kinds": m', "observable_ratios": [ratios], "observable_too_wide": [...],
+        "largest_ratio": float, "observable_ratios": [rms sigma / rms error], "observable_too_wide": [...],
         "past_5sigma": [misses beyond 5 sigma not marked not converged]}``: parameters with a finite, positive sigma
-        and a non-zero error only (an error of exactly zero is a parameter held at a true prior, not an estimate); the 10x rule on converged sensors, and again on the kinds without a weak parameter of the sensors not
-        marked ``not converged``.
+        and a non-zero error only (an error of exactly zero is a parameter held at a true prior, not an estimate); the
+        10x rule on converged sensors, and again on the kinds without a weak parameter of the sensors not marked
+        ``not converged``.
     """
     from moisst_ns.rig.trust import PARAMETERS
 
@@ -104,8 +105,7 @@ def coverage_summary(runs: Dict[str, Dict[str, dict]]) -> dict:
                 if ratio > MAX_SIGMA_RATIO:
                     wide.append((label, name, kind, ratio))
     return {"within_3sigma": within, "finite": finite, "fraction": within / finite if finite else float("nan"), "misses": misses,
-            "converged_kinds": kinds, "too_wide": wide, "largest_ratio": largest, "observable_kinds": len(observable),
-            "observable_ratios": observable, "observable_too_wide": observable_wide,
+            "converged_kinds": kinds, "too_wide": wide, "largest_ratio": largest, "observable_ratios": observable, "observable_too_wide": observable_wide,
             "past_5sigma": [m for m in misses if m[3] > 5.0 and m[4] != "not converged"]}
 
 

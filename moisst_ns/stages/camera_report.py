@@ -13,11 +13,10 @@ import numpy as np
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
 from moisst_ns.stages.camera_registration import CameraRegistrationConfig, CameraStageResult
-from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS
+from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS
 
 REPORT_JSON = "camera_registration.json"
 REPORT_MD = "camera_registration.md"
-UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
 
 
 def _finite(value: float) -> Optional[float]:

@@ -12,10 +12,7 @@ from jaxtyping import Float, Int
 
 from moisst_ns.rig.trust import parameter_difference
 from moisst_ns.stages.lidar_geometry import Extrinsic
-from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, Observability
-
-UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
-"""Display scale and unit of each of ``observability.PARAMETERS`` (from m, rad, s)."""
+from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS, Observability
 
 
 def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, observability: Observability) -> Dict[str, object]:
@@ -44,7 +41,7 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
     held = [p for p, f in zip(PARAMETERS, is_free) if not f]
     inconsistent = [p for p, f, c, s, step in zip(PARAMETERS, is_free, change, sigma, TEST_STEPS)
                     if not f and abs(c) > max(3.0 * s, 0.1 * step)]
-    moves = ", ".join(_amount(p, c) for p, c in zip(PARAMETERS, change) if p in inconsistent)
+    moves = ", ".join(f"{p} {c * u:+.3g} {unit}" for p, c, (u, unit) in zip(PARAMETERS, change, UNITS) if p in inconsistent)
     note = f"held at its prior, {', '.join(inconsistent)} disagree with the scans (released, they move by {moves})" if inconsistent else ""
     return {"held": held, "released_change": change.tolist(), "inconsistent": inconsistent,
             "sigma_release": np.abs(change).tolist(), "note": note}
@@ -79,9 +76,3 @@ def split_half_spread(fit: Callable[[np.ndarray, np.ndarray], Optional[Extrinsic
         return np.full(7, np.nan)
     return np.abs(np.asarray(parameter_difference(first.matrix(), first.time_offset, second.matrix(), second.time_offset))) / 2
 
-
-def _amount(parameter: str, value: float) -> str:
-    """A parameter difference (m, rad or s) as ``name +N cm|deg|ms``."""
-    if parameter == "time_offset":
-        return f"{parameter} {1000 * value:+.3g} ms"
-    return f"{parameter} {100 * value:+.3g} cm" if parameter in ("x", "y", "z") else f"{parameter} {np.rad2deg(value):+.3g} deg"

@@ -31,9 +31,9 @@ from jaxtyping import Float, Int
 from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
-from moisst_ns.stages.lidar_checks import UNITS, release_check, split_half_spread
+from moisst_ns.stages.lidar_checks import release_check, split_half_spread
 from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, Trajectory, place_points, placement_jacobian, trajectory_at
-from moisst_ns.stages.observability import PARAMETERS, Observability, analyse_observability
+from moisst_ns.stages.observability import PARAMETERS, UNITS, Observability, analyse_observability
 
 
 class LidarFirstError(ValueError):

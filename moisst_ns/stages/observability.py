@@ -31,6 +31,8 @@ JACOBIAN_ORDER = (3, 4, 5, 0, 1, 2, 6)
 """Column of each of ``PARAMETERS`` in a Jacobian ordered (rotation vector, translation, time offset)."""
 TEST_STEPS = (0.10, 0.10, 0.10, np.deg2rad(1.0), np.deg2rad(1.0), np.deg2rad(1.0), 0.010)
 """A typical prior error per parameter: 10 cm, 1 degree, 10 ms."""
+UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
+"""Display scale and unit of each of ``PARAMETERS`` (from m, rad, s)."""
 MIN_EFFECT = 0.002
 """A parameter is weak when its test step changes the RMS residual by less than this, metres."""
 
