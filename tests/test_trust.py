@@ -153,10 +153,11 @@ def test_old_files_load_and_bad_trust_fields_name_the_field(tmp_path):
 @pytest.mark.parametrize("moving, loss_est, loss_prior, weak, hit, verdict, keep_prior", [
     (None, 0.01, 0.02, [], [], "converged", False),
     (None, 0.01, 0.02, ["z"], [], "weakly observable", False),
-    ("2.0 cm", 0.01, 0.02, [], [], "not converged", False),
+    ("2.0 cm", 0.01, 0.02, [], [], "not converged", True),   # still moving: the prior is kept
+
     (None, 0.02, 0.02, [], [], "not converged", True),     # no better than the prior: keep the prior
     (None, 0.03, 0.02, ["z"], [], "not converged", True),
-    (None, 0.01, 0.02, [], ["time offset"], "not converged", False),
+    (None, 0.01, 0.02, [], ["time offset"], "not converged", True),  # at a bound: the estimate is arbitrary
     (None, None, None, [], [], "converged", False),          # no held-back loss (LiDAR-first sensor)
     (None, None, None, ["x"], [], "not converged", True),     # x unconstrained (sigma inf): the estimate is arbitrary
 ])
