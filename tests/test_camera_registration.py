@@ -333,3 +333,25 @@ def test_convergence_tail_is_aitkens_remaining_distance_or_the_last_two_steps():
     rows[:, 6] = [0.0, 1.0, 1.0, 1.0]  # settled after one step
     np.testing.assert_allclose(convergence_tail(rows), [2.0, 2.0 / 3.0, 2.5, 0.0, 3.0, 0.0, 0.0])
     np.testing.assert_array_equal(convergence_tail(rows[:2]), np.zeros(7))
+
+
+def test_patch_points_ring_each_point_in_the_frame_that_sees_it_nearest():
+    """Each point is followed by its ring: in the nearest frame that sees it, ``count`` pixels at ``radius`` around
+    the point's own pixel at the point's depth; a point no frame sees gets none; ``count=0`` is the bare map."""
+    from moisst_ns.stages.camera_map import patch_points
+
+    model = PinholeModel(100.0, 80.0, 48.0, 36.0, 96, 72)
+    poses = np.stack([np.eye(4), np.eye(4)])
+    poses[1, 2, 3] = 3.0  # the second frame 3 m ahead along its optical axis: nearer to every point in front
+    world = np.array([[0.5, -0.2, 10.0], [0.0, 0.0, -5.0]])  # the second point is behind both frames
+    out = patch_points(world, poses, model, count=6, radius_px=2.5)
+    assert out.shape == (2 + 6, 3)
+    np.testing.assert_array_equal(out[:2], world)
+    near = out[2:] - poses[1, :3, 3]
+    uv, z = project(model, torch.from_numpy(near))
+    centre, _ = project(model, torch.from_numpy(world[:1] - poses[1, :3, 3]))
+    np.testing.assert_allclose(z.numpy(), 7.0)
+    offsets = uv.numpy() - centre.numpy()
+    np.testing.assert_allclose(np.linalg.norm(offsets, axis=1), 2.5, atol=1e-9)
+    np.testing.assert_allclose(np.degrees(np.arctan2(offsets[:, 1], offsets[:, 0])) % 360, np.arange(6) * 60.0, atol=1e-9)
+    np.testing.assert_array_equal(patch_points(world, poses, model, count=0, radius_px=2.5), world)
