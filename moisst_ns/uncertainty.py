@@ -233,7 +233,8 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         free = [] if sigma is None else [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= UNCONSTRAINED * step]
         check = (entry or {}).get("held_check") or {}
         held = f"{check['note']}: the free parameters absorbed that error" if check.get("note") else None
-        verdict, reason, keep_prior = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free, blind, held)
+        verdict, reason = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free, blind, held)
+        keep_prior = verdict == "not converged"
         if keep_prior:  # the dataset's prior (rig.json), also for a LiDAR the NeRF started from the LiDAR-first estimate
             final.T_ref_sensor[name] = np.array(dataset_prior.T_ref_sensor[name], dtype=np.float64)
             final.time_offset[name] = float(dataset_prior.time_offset[name])

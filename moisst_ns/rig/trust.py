@@ -130,7 +130,7 @@ def parse_trust(entry: dict) -> Optional[SensorTrust]:
 def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], loss_prior: Optional[float],
                    weak: List[str], hit_bounds: List[str], unconstrained: Optional[List[str]] = None,
                    blind: Optional[List[str]] = None, held: Optional[str] = None) -> tuple:
-    """The verdict of one sensor, its one-line reason, and whether to keep the prior instead of the estimate.
+    """The verdict of one sensor and its one-line reason.
 
     Args:
         still_moving: the spread of its last logged estimates when it is still moving (``runs.history.still_moving``),
@@ -148,32 +148,32 @@ def decide_verdict(still_moving: Optional[str], loss_estimate: Optional[float], 
             the truth for a LiDAR whose prior was 86.6 cm off, delta held 100 ms off), so the prior is kept.
 
     Returns:
-        ``(verdict, reason, keep_prior)``: ``keep_prior`` for every ``not converged`` verdict (calibration.json holds an
-        estimate only where the tool vouches for it; a calibration never silently ends worse than it started). Still
-        moving is among them: the held-back loss cannot say whether a NeRF-calibrated sensor improved (the scene was
-        fitted to the estimate), and the measured case did not (camera-only plaza rig of seed 1: the side camera the
-        stages could not register ended 13.5 deg off against a prior 8.8 deg off, with a lower held-back loss).
+        ``(verdict, reason)``. Every ``not converged`` sensor keeps its prior (the reason ends ": the prior is kept"):
+        calibration.json holds an estimate only where the tool vouches for it, and a calibration never silently ends
+        worse than it started. Still moving is among them: the held-back loss cannot say whether a NeRF-calibrated
+        sensor improved (the scene was fitted to the estimate), and the measured case did not (camera-only plaza rig
+        of seed 1: the side camera the stages could not register ended 13.5 deg off against a prior 8.8 deg off, with
+        a lower held-back loss).
     """
     if blind:
-        return ("not converged", f"its view does not tell a typical prior error (10 cm, 1 deg, 10 ms) apart on {', '.join(blind)}: "
-                "the prior is kept, not calibrated", True)
-    if unconstrained:
-        return ("not converged", f"{', '.join(unconstrained)} not determined by the data (sigma beyond {UNCONSTRAINED:g}x a "
-                "typical prior error): the prior is kept", True)
-    if loss_estimate is not None and loss_prior is not None and not loss_estimate < loss_prior:
-        return ("not converged", f"held-back loss {loss_estimate:.5g} at the estimate is no better than {loss_prior:.5g} "
-                "at the prior: the prior is kept", True)
-    if still_moving:
-        return "not converged", f"still moving over its last estimates ({still_moving}): the prior is kept", True
-    if held:
-        return "not converged", f"{held}: the prior is kept", True
-    if hit_bounds:
-        return "not converged", f"ran into its bound on {', '.join(hit_bounds)}: the prior is kept", True
-    better = (f"; held-back loss {loss_estimate:.5g} vs {loss_prior:.5g} at the prior"
-              if loss_estimate is not None and loss_prior is not None else "")
-    if weak:
-        return "weakly observable", f"{', '.join(weak)} weakly observable{better}", False
-    return "converged", f"settled, every parameter observable{better}", False
+        cause = f"its view does not tell a typical prior error (10 cm, 1 deg, 10 ms) apart on {', '.join(blind)}"
+    elif unconstrained:
+        cause = f"{', '.join(unconstrained)} not determined by the data (sigma beyond {UNCONSTRAINED:g}x a typical prior error)"
+    elif loss_estimate is not None and loss_prior is not None and not loss_estimate < loss_prior:
+        cause = f"held-back loss {loss_estimate:.5g} at the estimate is no better than {loss_prior:.5g} at the prior"
+    elif still_moving:
+        cause = f"still moving over its last estimates ({still_moving})"
+    elif held:
+        cause = held
+    elif hit_bounds:
+        cause = f"ran into its bound on {', '.join(hit_bounds)}"
+    else:
+        better = (f"; held-back loss {loss_estimate:.5g} vs {loss_prior:.5g} at the prior"
+                  if loss_estimate is not None and loss_prior is not None else "")
+        if weak:
+            return "weakly observable", f"{', '.join(weak)} weakly observable{better}"
+        return "converged", f"settled, every parameter observable{better}"
+    return "not converged", f"{cause}: the prior is kept"
 
 
 def parameter_difference(T_a, delta_a: float, T_b, delta_b: float) -> List[float]:
