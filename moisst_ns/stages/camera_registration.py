@@ -21,7 +21,7 @@ prior keeps its prior (``CameraResult.kept_prior``). Nothing here imports nerfst
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -177,6 +177,9 @@ class CameraResult:
     """The resolution part of ``sigma`` (``camera_guards.resolution_spread``; zeros when ``resolution_spread`` is off)."""
     sigma_convergence: List[float] = field(default_factory=list)
     """The convergence part of ``sigma`` (``camera_guards.convergence_tail``; zeros when ``convergence_tail`` is off)."""
+    held_there: bool = False
+    """The prior is kept and ``moisst-calibrate`` holds it there through the NeRF too (``note`` says why); a ``blind``
+    camera is held as well."""
 
 
 def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
@@ -354,7 +357,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         log(f"[camera-registration] {name}: {r.note}; it keeps its prior here")
     if len(results) == len(cameras):  # nothing to fit: no map needed
         return CameraStageResult(out, results, 0)
-    if any(s.type == "lidar" for s in rig.sensors.values()):
+    lidarless = not any(s.type == "lidar" for s in rig.sensors.values())
+    if not lidarless:
         world = lidar_map(rig, calibration, config.map_voxel, config.min_range, log)
     else:  # a camera-only rig: the reference camera's features, triangulated from its known poses
         world = feature_map(rig, calibration, FeatureMapConfig(voxel=config.map_voxel), log)
@@ -383,5 +387,11 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             results[name] = _prior_kept(name, calibration, str(err))
             log(f"[camera-registration] {name}: {err}; it keeps its prior here")
         r = results[name]
+        if lidarless and initial is not None and initial.theta is None:  # neither this stage nor the NeRF can place it
+            why = (f"it shares no view with {reference_name} ({initial.note}) and the rig has no LiDAR: fitted to {reference_name}'s "
+                   "triangulated features alone, it inherits their errors, which none of its sigma parts sees")
+            r = results[name] = replace(r, estimate=r.prior, time_offset=r.prior_offset, kept_prior=True, held_there=True,
+                                        note=f"{r.note}; {why}" if r.kept_prior and r.note else why)
+            log(f"[camera-registration] {name}: {why}; it keeps its prior")
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
     return CameraStageResult(out, {n: results[n] for n in cameras}, len(world))
