@@ -178,8 +178,8 @@ class CameraResult:
     sigma_convergence: List[float] = field(default_factory=list)
     """The convergence part of ``sigma`` (``camera_guards.convergence_tail``; zeros when ``convergence_tail`` is off)."""
     held_there: bool = False
-    """The prior is kept and ``moisst-calibrate`` holds it there through the NeRF too (``note`` says why); a ``blind``
-    camera is held as well."""
+    """The prior is kept and ``moisst-calibrate`` holds it there through the NeRF too (``note`` says why): a ``blind``
+    camera, or one that shares no view with the reference camera of a rig without a LiDAR."""
 
 
 def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
@@ -264,7 +264,7 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
     return CameraResult(problem.camera.sensor, prior, problem.model.prior_offset, pose, offset, np.fmax.reduce([formal, spread, resolution, tail]).tolist(), cost_pri,
                         cost_est, kept, history, wall_s + time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun,
                         significance.tolist() if config.min_significance > 0 else [], blind, resolution.tolist(),
-                        tail.tolist())
+                        tail.tolist(), held_there=bool(blind))
 
 
 def _started(initial: Optional[FeatureStart]) -> str:

@@ -47,7 +47,7 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                  "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history,
                  "typical_error_significance": [_finite(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None,
                  "blind": [p for p in PARAMETERS if p in r.blind],
-                 "held_there": r.held_there or bool(r.blind),
+                 "held_there": r.held_there,
                  **parts}
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
