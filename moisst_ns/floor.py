@@ -24,7 +24,7 @@ from typing import Dict, List, Literal, Optional
 
 import numpy as np
 
-from moisst_ns.pipeline import (LIDAR_DEPTH_PER_M2, apply_scene_switches, fixed_calibration_scene, lidar_scene_settings, rig_trainer_config,
+from moisst_ns.pipeline import (LIDAR_DEPTH_PER_M2, apply_scene_switches, fixed_calibration_scene, lidar_scene_settings, map_range_settings, rig_trainer_config,
                                seed_everything)
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
@@ -68,6 +68,9 @@ class FloorConfig:
     """Weight of the line-of-sight loss on LiDAR rays (the model's default when omitted; 0 switches it off)."""
     lidar_far_margin: Optional[float] = None
     """LiDAR-guided sampling as ``moisst-calibrate --lidar-far-margin`` (the model's default when omitted)."""
+    map_range_mult: float = 0.0
+    """Supervise every camera's rays with the LiDAR map's range, this weight per m^2 (the scene trains at the truth, so
+    every pose is known; ``moisst-calibrate --map-range-mult`` does it for the cameras the stages hold); 0: off."""
     verbose: bool = False
     """Show every third-party warning (known-harmless ones are hidden by default: ``moisst_ns.quiet``)."""
     depth_check_rays: int = 8192
@@ -258,6 +261,9 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
     apply_scene_switches(model, cfg.depth_loss_per_m2, cfg.line_of_sight_mult, cfg.lidar_far_margin)
     if cfg.lidar_scene and any(s.type == "lidar" for s in rig.sensors.values()):
         lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
+    if cfg.map_range_mult > 0 and any(s.type == "lidar" for s in rig.sensors.values()):
+        datamanager.dataparser.prior_calibration = rig.root / "ground_truth.json"  # the map and the frames at the truth
+        map_range_settings(config, cfg.map_range_mult, [n for n, s in rig.sensors.items() if s.type == "camera"])
     # The scene is built at the true calibration, so the phases that protect it from miscalibrated sensors
     # (reference-only warm-up, detached registration, coarse-to-fine) are switched off: the best scene of this budget.
     model.camera_optimizer.mode = "off"
@@ -328,6 +334,7 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
         "lidar_scene": cfg.lidar_scene,
         "line_of_sight_mult": float(pipeline.model.config.line_of_sight_mult),
         "lidar_far_margin_m": float(pipeline.model.config.lidar_far_margin_m),
+        "map_range_mult": float(pipeline.model.config.map_range_mult),
         "scene_wall_time_s": scene_wall,
         "register_wall_time_s": register_wall,
         "floor": floor,

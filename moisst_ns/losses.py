@@ -1,5 +1,5 @@
 """The losses of paper eq. 7 and 13 beyond nerfacto's colour loss (LiDAR depth, DSSIM, depth smoothness) and Urban
-Radiance Fields' line-of-sight loss on LiDAR rays, as pure torch functions.
+Radiance Fields' line-of-sight loss on LiDAR rays, and the LiDAR map's range on camera rays, as pure torch functions.
 
 Patches come from nerfstudio's ``PatchPixelSampler`` (``datamanager.patch_size > 1``), which orders the camera
 rays of a batch as (num_patches, patch, patch).
@@ -99,3 +99,25 @@ def line_of_sight_loss(
     empty_mass = (w * before).sum(-1)
     near_mass = (w * near).sum(-1)
     return (empty_mass + 1.0 - near_mass).mean()
+
+
+def map_range_loss(expected_depth: Float[Tensor, "num_rays"], map_range: Float[Tensor, "num_rays"], units_per_metre: float,
+                   delta_m: float = 0.2) -> Float[Tensor, ""]:
+    """Metric depth loss of camera rays against the LiDAR map's range (``stages.map_range``): Huber in metres.
+
+    Args:
+        expected_depth: volume-rendered expected distance along each unit-direction camera ray, model units.
+        map_range: the map's range for the same pixel, model units; NaN where the map has none (left out).
+        units_per_metre: model units in a metre (the dataparser's ``world_scale``).
+        delta_m: Huber threshold, metres: quadratic below, linear above (a pixel on a depth edge of the map is
+            an outlier, not a target to chase).
+
+    Returns:
+        The mean Huber loss over the rays with a range, square metres (0 when none has one).
+    """
+    target = map_range.to(expected_depth)
+    valid = torch.isfinite(target)
+    if not bool(valid.any()):
+        return expected_depth.sum() * 0.0
+    error = (expected_depth[valid] - target[valid]) / units_per_metre
+    return torch.nn.functional.huber_loss(error, torch.zeros_like(error), delta=delta_m)

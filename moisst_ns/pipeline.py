@@ -12,7 +12,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, Optional, Sequence
 
 import tyro
 
@@ -81,6 +81,9 @@ class CalibrateConfig:
     lidar_far_margin: Optional[float] = None
     """LiDAR-guided sampling: end each LiDAR ray this many metres behind its measured range (samples concentrate
     in front of the surface); the method's default when omitted, 0: off."""
+    map_range_mult: float = 0.0
+    """After the LiDAR-first stage, supervise the rays of the cameras whose pose is known (the reference camera, the
+    cameras the stages hold) with the calibrated LiDAR map's range, this weight per m^2 (``stages.map_range``); 0: off."""
     lidar_scene: bool = False
     """After the LiDAR-first stage, let the calibrated LiDARs' metric depth (``--depth-loss-per-m2``, default 5 per
     m^2) shape the scene from step 0 over their whole scan (an experiment of the metric-scene issue: on the
@@ -201,6 +204,18 @@ def apply_scene_switches(model, depth_loss_per_m2: Optional[float], line_of_sigh
         model.lidar_far_margin_m = lidar_far_margin
 
 
+def map_range_settings(config, mult: float, cameras: Sequence[str]) -> None:
+    """Supervise the rays of ``cameras`` (poses known) with the LiDAR map's range (``stages.map_range``).
+
+    Args:
+        config: the trainer config (changed in place).
+        mult: weight per square metre (``model.map_range_mult``).
+        cameras: cameras whose pose is known at the dataparser's prior calibration.
+    """
+    config.pipeline.model.map_range_mult = mult
+    config.pipeline.datamanager.map_range_sensors = tuple(cameras)
+
+
 class CalibrationError(ValueError):
     """A calibration that cannot start or had to stop; the message is one line naming file/option and problem."""
 
@@ -316,6 +331,9 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         model.camera_optimizer.frozen_sensors = frozen
         if cfg.registration_sensors is not None:
             model.registration_sensors = cfg.registration_sensors
+        if cfg.map_range_mult > 0 and stage is not None:
+            known = [n for n in (rig.reference_sensor, *frozen) if rig.sensors[n].type == "camera"]
+            map_range_settings(config, cfg.map_range_mult, known)
         if cfg.lidar_scene:
             lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
             if not cfg.depth_loss:

@@ -59,6 +59,13 @@ class MoisstDataManagerConfig(VanillaDataManagerConfig):
     """Keep only the points inside the reference camera's field of view (by the priors), so LiDAR rays land
     where the scene is observed by the sensor whose poses are known; a 360 degree scan otherwise mostly hits
     space no camera constrains. Ignored when the reference sensor is a LiDAR."""
+    map_range_sensors: Tuple[str, ...] = ()
+    """Cameras whose training rays get a metric range target from the LiDAR map (``batch["map_range"]``, model units,
+    NaN where the map has none): the rig's LiDAR scans placed at the prior calibration, seen from each frame at its
+    prior pose (``stages.map_range``). Only cameras whose pose is known belong here: the reference camera, cameras
+    held at a stage's estimate (``moisst-calibrate`` sets it), every camera at the truth (``moisst-floor``)."""
+    map_range_voxel: float = 0.05
+    """Voxel of the LiDAR map behind the range targets, metres."""
 
 
 def concat_ray_bundles(first: RayBundle, second: RayBundle) -> RayBundle:
@@ -99,6 +106,7 @@ class MoisstDataManager(VanillaDataManager):
                 CONSOLE.print(f"LiDAR: {int(keep.sum())} of {keep.numel()} points inside the reference camera's view")
                 self.lidar_points, self.lidar_stamps, self.lidar_sensor = self.lidar_points[keep], self.lidar_stamps[keep], self.lidar_sensor[keep]
         self.lidar_generator = torch.Generator().manual_seed(int(kwargs.get("seed", 0)) + 12345)
+        self.map_range, self.map_slot = self._map_ranges()
         if config.patch_size > 1:
             # nerfstudio 1.1.5's PatchPixelSampler rounds the batch with its default patch size (32) before it
             # takes ours, so e.g. 512 rays became 0: round again with the real patch size.
@@ -110,6 +118,52 @@ class MoisstDataManager(VanillaDataManager):
             from nerfstudio.data.pixel_samplers import PixelSamplerConfig
 
             self.single_pixel_sampler = PixelSamplerConfig(num_rays_per_batch=config.train_num_rays_per_batch).setup()
+
+    def _map_ranges(self) -> Tuple[Tensor | None, Tensor | None]:
+        """Range images of the LiDAR map for the training frames of ``map_range_sensors`` (model units, NaN: none),
+        and each training image's row in them (-1: no target)."""
+        names = tuple(self.config.map_range_sensors)
+        if not names:
+            return None, None
+        from moisst_ns.rig.format import Calibration
+        from moisst_ns.stages.lidar_map import lidar_map
+        from moisst_ns.stages.map_range import opengl_to_opencv, range_image
+
+        full = self.rig.rig
+        unknown = [n for n in names if n not in full.sensors or full.sensors[n].type != "camera"]
+        if unknown:
+            raise RigFormatError(full.root / "rig.json", "sensors", f"map_range_sensors names no camera of the rig: {unknown}")
+        world = lidar_map(full, Calibration.from_rig(full), self.config.map_range_voxel, self.config.lidar_min_range, log=lambda s: None)
+        points = self.rig.world.points_to_model(torch.from_numpy(world)).numpy()
+        cameras = self.train_dataset.cameras
+        sensor = [self.rig.sensor_names[i] for i in self.rig.frame_sensor_index]
+        frames = [i for i, n in enumerate(sensor) if n in names and not bool(cameras.distortion_params[i].abs().gt(0).any())]
+        skipped = sorted({sensor[i] for i, n in enumerate(sensor) if n in names} - {sensor[i] for i in frames})
+        if skipped:
+            CONSOLE.print(f"LiDAR map ranges: {skipped} left out (lens distortion: the ranges are computed for pinholes)")
+        slot = torch.full((len(sensor),), -1, dtype=torch.long)
+        if not frames:
+            return None, None
+        height, width = int(cameras.height.max()), int(cameras.width.max())
+        ranges = torch.full((len(frames), height, width), float("nan"))
+        c2w = cameras.camera_to_worlds.double().numpy()
+        for row, i in enumerate(frames):
+            image = range_image(opengl_to_opencv(c2w[i], points), float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]),
+                                float(cameras.cy[i]), int(cameras.width[i]), int(cameras.height[i]))
+            ranges[row, : image.shape[0], : image.shape[1]] = torch.from_numpy(image)
+            slot[i] = row
+        covered = float(torch.isfinite(ranges).float().mean())
+        CONSOLE.print(f"LiDAR map ranges: {len(world)} map points, {len(frames)} frames of {list(names)}, {100 * covered:.0f} % of their pixels")
+        return ranges, slot
+
+    def map_range_of(self, indices: Tensor) -> Tensor:
+        """The map's range (model units, NaN: none) of sampled pixels ``indices`` (image, y, x)."""
+        idx = indices.long().cpu()
+        row = self.map_slot[idx[:, 0]]
+        out = torch.full((len(idx),), float("nan"))
+        has = row >= 0
+        out[has] = self.map_range[row[has], idx[has, 1], idx[has, 2]]
+        return out
 
     def _sample(self, sampler, image_batch: Dict, count: int, fraction) -> Dict | None:
         """``count`` rays (pixels or patches, by ``sampler``), a share ``fraction`` of them from the reference camera
@@ -200,6 +254,8 @@ class MoisstDataManager(VanillaDataManager):
         else:
             layout = RayLayout(num_camera, num_patch=num_camera if patch > 1 else 0, patch_size=patch)
         batch["ray_layout"] = layout
+        if self.map_range is not None:
+            batch["map_range"] = self.map_range_of(batch["indices"]).to(ray_bundle.origins.device)
         if not self.has_lidar or step < self.config.lidar_start_step:
             return ray_bundle, batch
         device = ray_bundle.origins.device
