@@ -285,7 +285,9 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
     pipeline.model.train()
     depth = scene_depth_check(pipeline, rig.root, cfg.depth_check_rays) if cfg.depth_check_rays > 0 else {}
 
-    # Register: the scene frozen, every sensor released at its truth.
+    # Register: the scene frozen, every sensor released at its truth. A camera whose pose is estimated has no map
+    # range in a real run (moisst-calibrate gives it only to cameras the stages hold), so that term ends with the scene.
+    pipeline.model.config.map_range_mult = 0.0
     rig_params = optimizer.rig
     groups = dict(zip(CALIBRATION_GROUPS, (rig_params.rotvec, rig_params.translation, rig_params.time_offset)))
     steppers = []

@@ -400,8 +400,11 @@ class MoisstModel(NerfactoModel):
             if self.config.depth_smoothness_mult > 0:
                 depth = camera["expected_depth"][:num_patch].view(*shape)
                 loss_dict["depth_smoothness_loss"] = self.config.depth_smoothness_mult * depth_smoothness_loss(depth)
-        if self.training and self.config.map_range_mult > 0 and "map_range" in batch:
-            loss_dict["map_range_loss"] = self.config.map_range_mult * map_range_loss(
+        if self.training and self.config.map_range_mult > 0 and "map_range" in batch and self._step >= self.config.depth_loss_start:
+            ramp = 1.0  # as the LiDAR depth loss: after the colour-only start, ramped in
+            if self.config.depth_loss_ramp_steps > 0:
+                ramp = min(1.0, (self._step - self.config.depth_loss_start + 1) / self.config.depth_loss_ramp_steps)
+            loss_dict["map_range_loss"] = ramp * self.config.map_range_mult * map_range_loss(
                 camera["expected_depth"][:, 0], batch["map_range"], float(self.camera_optimizer.world_scale))
         if self.training and lidar is not None and "lidar_range" in batch and self._step >= self.config.depth_loss_start:
             ramp = 1.0
