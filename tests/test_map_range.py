@@ -85,3 +85,27 @@ def test_map_ranges_are_the_true_surface_along_the_training_rays(rig_and_dataman
     hit = scene.cast(origins[has], dirs[has])["t_hit"].astype(np.float64)
     error = np.abs(target[has] / world.scale - hit)
     assert np.median(error) < 0.05 and np.percentile(error, 75) < 0.15  # metres, 5 cm map voxels on 64x48 pixels
+
+
+def test_the_map_range_loss_starts_with_the_depth_loss_and_trains_the_scene(tmp_path):
+    rig = make_rig(SynthConfig(out=tmp_path / "rig", width=48, height=36, frames=6, seed=1, perturb="none"))
+    config = moisst_trainer_config("moisst-lite", 100)
+    config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = rig
+    config.pipeline.datamanager.map_range_sensors = ("cam_front",)
+    config.pipeline.model.map_range_mult = 1.0
+    config.output_dir, config.experiment_name, config.timestamp, config.vis = tmp_path / "out", ".", "run", "tensorboard"
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    pipeline, model = trainer.pipeline, trainer.pipeline.model
+    start = model.config.depth_loss_start
+    assert start > 0
+    model._update_schedule(start - 1)
+    _, before, _ = pipeline.get_train_loss_dict(step=start - 1)
+    assert "map_range_loss" not in before
+    late = start + model.config.depth_loss_ramp_steps + 1
+    model._update_schedule(late)
+    _, after, _ = pipeline.get_train_loss_dict(step=late)
+    assert "map_range_loss" in after and float(after["map_range_loss"]) > 0.0
+    field = [p for p in model.field.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(after["map_range_loss"], field, allow_unused=True)
+    assert any(g is not None and float(g.abs().sum()) > 0 for g in grads)
