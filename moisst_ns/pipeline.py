@@ -331,7 +331,7 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
         model.camera_optimizer.frozen_sensors = frozen
         if cfg.registration_sensors is not None:
             model.registration_sensors = cfg.registration_sensors
-        if cfg.map_range_mult > 0 and stage is not None:
+        if cfg.map_range_mult > 0 and stage is not None and any(s.type == "lidar" for s in rig.sensors.values()):
             known = [n for n in (rig.reference_sensor, *frozen) if rig.sensors[n].type == "camera"]
             map_range_settings(config, cfg.map_range_mult, known)
         if cfg.lidar_scene:
