@@ -250,7 +250,8 @@ def test_typical_error_test_keeps_the_prior_of_a_side_camera_its_view_cannot_det
     rig, _, start = lidar_at_truth(rig_folder)
     result = register_cameras(rig, start, CameraRegistrationConfig(min_significance=1.0), sensors=["cam_left"], log=lambda s: None)
     r = result.cameras["cam_left"]
-    assert r.kept_prior and r.note.startswith("its view does not tell a typical prior error apart on "), r.note
+    # every guard that fired is named (on some machines the cost-ratio guard fires too: 5.5x, and is listed first)
+    assert r.kept_prior and "its view does not tell a typical prior error apart on " in r.note, r.note
     assert len(r.significance) == 7 and min(r.significance) < 1.0
     np.testing.assert_array_equal(result.calibration.T_ref_sensor["cam_left"], start.T_ref_sensor["cam_left"])
     assert result.calibration.time_offset["cam_left"] == start.time_offset["cam_left"]

@@ -251,16 +251,17 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
     kept = not better or bool(at_bound) or ratio > config.max_cost_ratio or bool(undetermined) or bool(blind)
     prior = problem.model.prior.numpy()
     pose, offset = (prior, problem.model.prior_offset) if kept else _corrected(prior, problem.model.prior_offset, theta)
-    note = ""
-    if blind:
-        note = (f"its view does not tell a typical prior error apart on {', '.join(blind)} (held-back cost increase under "
-                f"{config.min_significance:g}x three standard errors over the frames)")
-    if at_bound:
-        note = f"ran into its bound on {', '.join(at_bound)} (a runaway)"
-    if undetermined:
-        note = f"the two halves of the drive disagree on {', '.join(undetermined)} by more than {config.max_split_half:g}x a typical prior error"
+    reasons = []  # every guard that keeps the prior, the strongest first
     if ratio > config.max_cost_ratio:
-        note = f"its photometric cost at the estimate is {ratio:.1f}x the reference camera's own (a wrong minimum)"
+        reasons.append(f"its photometric cost at the estimate is {ratio:.1f}x the reference camera's own (a wrong minimum)")
+    if undetermined:
+        reasons.append(f"the two halves of the drive disagree on {', '.join(undetermined)} by more than {config.max_split_half:g}x a typical prior error")
+    if at_bound:
+        reasons.append(f"ran into its bound on {', '.join(at_bound)} (a runaway)")
+    if blind:
+        reasons.append(f"its view does not tell a typical prior error apart on {', '.join(blind)} (held-back cost increase under "
+                       f"{config.min_significance:g}x three standard errors over the frames)")
+    note = "; ".join(reasons)
     return CameraResult(problem.camera.sensor, prior, problem.model.prior_offset, pose, offset, np.fmax.reduce([formal, spread, resolution, tail]).tolist(), cost_pri,
                         cost_est, kept, history, wall_s + time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun,
                         significance.tolist() if config.min_significance > 0 else [], blind, resolution.tolist(),
