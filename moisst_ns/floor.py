@@ -287,6 +287,7 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
 
     # Register: the scene frozen, every sensor released at its truth. A camera whose pose is estimated has no map
     # range in a real run (moisst-calibrate gives it only to cameras the stages hold), so that term ends with the scene.
+    scene_map_range_mult = float(pipeline.model.config.map_range_mult)
     pipeline.model.config.map_range_mult = 0.0
     rig_params = optimizer.rig
     groups = dict(zip(CALIBRATION_GROUPS, (rig_params.rotvec, rig_params.translation, rig_params.time_offset)))
@@ -336,7 +337,7 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
         "lidar_scene": cfg.lidar_scene,
         "line_of_sight_mult": float(pipeline.model.config.line_of_sight_mult),
         "lidar_far_margin_m": float(pipeline.model.config.lidar_far_margin_m),
-        "map_range_mult": float(pipeline.model.config.map_range_mult),
+        "map_range_mult": scene_map_range_mult,
         "scene_wall_time_s": scene_wall,
         "register_wall_time_s": register_wall,
         "floor": floor,

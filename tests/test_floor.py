@@ -74,6 +74,19 @@ def test_floor_run(rig, tmp_path):
     assert stages["map_depth"]["map_points"] > 1000
 
 
+def test_floor_with_the_map_range_records_the_scene_weight_and_releases_at_the_truth(rig, tmp_path):
+    """``--map-range-mult``: the scene trains with every camera's map range (the truth loaded as the prior), the term is
+    dropped for the release, and floor.json records the weight the scene trained with."""
+    out = tmp_path / "floor"
+    run_floor(FloorConfig(dataset=rig, output_dir=out, scene_steps=20, register_steps=5, log_every=5, average_last=1,
+                          threads=2, seed=0, depth_check_rays=200, stages=False, map_range_mult=0.5))
+    result = json.loads((out / "floor.json").read_text())
+    assert result["map_range_mult"] == 0.5
+    with (out / "floor_history.csv").open() as handle:
+        start = [r for r in csv.DictReader(handle) if r["step"] == "0"]
+    assert len(start) == 3 and all(float(r["translation_cm"]) < 1e-3 and float(r["time_ms"]) < 1e-3 for r in start)
+
+
 def test_stage_floor_alone(rig, tmp_path):
     """--no-nerf measures only the stages' floor: no scene is trained, no NeRF figures are written."""
     result = run_floor(FloorConfig(dataset=rig, output_dir=tmp_path / "f", nerf=False, threads=1))
