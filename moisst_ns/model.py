@@ -400,16 +400,11 @@ class MoisstModel(NerfactoModel):
             if self.config.depth_smoothness_mult > 0:
                 depth = camera["expected_depth"][:num_patch].view(*shape)
                 loss_dict["depth_smoothness_loss"] = self.config.depth_smoothness_mult * depth_smoothness_loss(depth)
-        if self.training and self.config.map_range_mult > 0 and "map_range" in batch and self._step >= self.config.depth_loss_start:
-            ramp = 1.0  # as the LiDAR depth loss: after the colour-only start, ramped in
-            if self.config.depth_loss_ramp_steps > 0:
-                ramp = min(1.0, (self._step - self.config.depth_loss_start + 1) / self.config.depth_loss_ramp_steps)
+        ramp = self._depth_ramp()
+        if self.training and self.config.map_range_mult > 0 and "map_range" in batch and ramp > 0:
             loss_dict["map_range_loss"] = ramp * self.config.map_range_mult * map_range_loss(
                 camera["expected_depth"][:, 0], batch["map_range"], float(self.camera_optimizer.world_scale))
-        if self.training and lidar is not None and "lidar_range" in batch and self._step >= self.config.depth_loss_start:
-            ramp = 1.0
-            if self.config.depth_loss_ramp_steps > 0:
-                ramp = min(1.0, (self._step - self.config.depth_loss_start + 1) / self.config.depth_loss_ramp_steps)
+        if self.training and lidar is not None and "lidar_range" in batch and ramp > 0:
             scale = float(self.camera_optimizer.world_scale) if self.config.depth_loss_units == "metric" else 1.0
             loss_dict["depth_loss"] = ramp * self.config.depth_loss_mult * lidar_depth_loss(
                 outputs["expected_depth"][lidar, 0], batch["lidar_range"], units_per_metre=scale)
@@ -424,6 +419,15 @@ class MoisstModel(NerfactoModel):
                 if not bool(torch.isfinite(value).all()):
                     raise FloatingPointError(f"step {self._step}: loss {name} is NaN/inf; stopping (nothing written)")
         return loss_dict
+
+    def _depth_ramp(self) -> float:
+        """Weight factor of the depth terms (LiDAR depth, line of sight, map range) at this step: 0 before
+        ``depth_loss_start`` (the colour-only start), then rising linearly to 1 over ``depth_loss_ramp_steps``."""
+        if self._step < self.config.depth_loss_start:
+            return 0.0
+        if self.config.depth_loss_ramp_steps <= 0:
+            return 1.0
+        return min(1.0, (self._step - self.config.depth_loss_start + 1) / self.config.depth_loss_ramp_steps)
 
     def _reference_rays(self, batch) -> Optional[Tensor]:
         rig = self.camera_optimizer.rig
