@@ -94,6 +94,15 @@ def bounds(config) -> Float[np.ndarray, "7"]:
     return np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset]
 
 
+def points_per_frame(config, factor: int, finest: bool) -> int:
+    """Map points sampled per camera frame at pyramid level ``factor``: ``fine_points_per_frame`` at the finest level
+    (when set), else ``points_per_frame / factor`` (a level ``f`` times smaller has ``f^2`` times fewer pixels), at
+    least 200."""
+    if finest and config.fine_points_per_frame > 0:
+        return int(config.fine_points_per_frame)
+    return max(config.points_per_frame // factor, 200)
+
+
 def solve(problem: Registration, theta: np.ndarray, active: np.ndarray, pairs: PairSet, factor: int, config):
     """One robust (Huber) trust-region solve of the active corrections from ``theta`` on fixed pairs.
 
@@ -135,7 +144,7 @@ def split_half_spread(problem: Registration, theta: np.ndarray, active: np.ndarr
     Returns:
         Per correction (rad, rad, rad, m, m, m, s); inf where a half has fewer than 50 pairs, 0 for inactive ones.
     """
-    pairs = problem.pairs(theta, factor, max(config.points_per_frame // factor, 200))
+    pairs = problem.pairs(theta, factor, points_per_frame(config, factor, factor == min(problem.camera.levels)))
     half = len(problem.camera.stamps) // 2
     estimates = []
     for rows in (pairs.frame_a < half, pairs.frame_a >= half):
