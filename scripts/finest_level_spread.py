@@ -3,7 +3,8 @@
 estimate's corrections (mdeg x3, mm x3, ms) and their mean and spread. ``own`` / ``ref`` keep only the camera's own
 pairs or only the reference-camera pairs. Needs a rig with a LiDAR and ground truth.
 
-Usage: .venv/bin/python scripts/finest_level_spread.py RIG CAMERA 600,5000 [all|own|ref] [DRAWS]
+Usage: .venv/bin/python scripts/finest_level_spread.py RIG CAMERA 600,5000 [all|own|ref] [DRAWS] [FIELD=VALUE ...]
+(``FIELD=VALUE``: ``CameraRegistrationConfig`` fields to change, e.g. ``map_voxel=0.02 huber=2``.)
 """
 
 from __future__ import annotations
@@ -30,12 +31,18 @@ UNITS = np.array([1e3 * 180 / np.pi] * 3 + [1e3] * 3 + [1e3])
 
 def main() -> None:
     folder, name, counts = Path(sys.argv[1]), sys.argv[2], [int(x) for x in sys.argv[3].split(",")]
-    mode = sys.argv[4] if len(sys.argv) > 4 else "all"
-    draws = int(sys.argv[5]) if len(sys.argv) > 5 else 4
+    positional = [a for a in sys.argv[1:] if "=" not in a]
+    mode = positional[3] if len(positional) > 3 else "all"
+    draws = int(positional[4]) if len(positional) > 4 else 4
+    defaults, changes = CameraRegistrationConfig(), {}
+    for key, value in (a.split("=", 1) for a in sys.argv[1:] if "=" in a):
+        if not hasattr(defaults, key):
+            sys.exit(f"finest_level_spread.py: {key}: not a CameraRegistrationConfig field")
+        changes[key] = type(getattr(defaults, key))(value)
     torch.set_num_threads(1)
     rig, truth = load_rig(folder), load_calibration(folder / "ground_truth.json")
     at_truth = rig_at(rig, truth)
-    config = CameraRegistrationConfig()
+    config = CameraRegistrationConfig(**changes)
     world = lidar_map(at_truth, truth, config.map_voxel, config.min_range, log=lambda s: None)
     traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
     camera, reference = load_camera(at_truth, name, [1]), load_camera(at_truth, rig.reference_sensor, [1])
