@@ -1,9 +1,10 @@
-"""What every console script shares: turning an error into one line on stderr and exit status 2."""
+"""What every console script shares: turning an error into one line on stderr and exit status 2; the dataset
+converters' main."""
 
 from __future__ import annotations
 
 import sys
-from typing import NoReturn
+from typing import Callable, NoReturn
 
 
 def fail(tool: str, message: object) -> NoReturn:
@@ -11,3 +12,30 @@ def fail(tool: str, message: object) -> NoReturn:
     one_line = str(message).replace("\r", "\\r").replace("\n", "\\n")
     print(f"{tool}: error: {one_line}", file=sys.stderr)
     raise SystemExit(2)
+
+
+def run_converter(tool: str, config_type: type, convert: Callable, name: str) -> None:
+    """Parse ``config_type`` from the command line, ``convert`` it and print ``<tool>: wrote OUT (NAME, <sensor> <n>
+    frames, ..., perturb P) in S s``; a ``RigFormatError`` ends in ``fail``.
+
+    Args:
+        name: the config field naming what was converted (``sequence``, ``drive``).
+    """
+    import json
+    import time
+
+    import tyro
+
+    from moisst_ns.rig.format import RigFormatError
+
+    config = tyro.cli(config_type)
+    start = time.perf_counter()
+    try:
+        out = convert(config)
+    except RigFormatError as err:
+        fail(tool, err)
+    counts: dict = {}
+    for frame in json.loads((out / "rig.json").read_text())["frames"]:
+        counts[frame["sensor"]] = counts.get(frame["sensor"], 0) + 1
+    print(f"{tool}: wrote {out} ({getattr(config, name)}, " + ", ".join(f"{n} {c} frames" for n, c in counts.items())
+          + f", perturb {config.perturb}) in {time.perf_counter() - start:.1f} s")

@@ -27,9 +27,8 @@ centres at +0.5, so ``cx_rig = cx_kitti + 0.5``.
 
 from __future__ import annotations
 
-import json
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Dict, List, Literal, Optional, Sequence, Tuple
 
@@ -38,12 +37,17 @@ import tyro
 
 from moisst_ns.datasets.kitti360_io import (
     PERSPECTIVE,
+    REFERENCE,
     Perspective,
     Kitti360Error,
     MeiCamera,
     _inv,
+    _prepare_out,
     _require,
     _rot4,
+    _scaled_intrinsics,
+    _write_rig,
+    _write_trajectory,
     format_timestamp,
     read_cam_to_pose,
     read_cam_to_velo,
@@ -52,53 +56,10 @@ from moisst_ns.datasets.kitti360_io import (
     read_perspective,
     read_timestamps,
 )
-from moisst_ns.datasets.output import clear_generated_dataset
-from moisst_ns.rig.format import Calibration, rig_json, write_tum
 
 CAMERAS = ("image_00", "image_01", "image_02", "image_03")
 FISHEYE = ("image_02", "image_03")
 VELODYNE = "velodyne"
-REFERENCE = "image_00"
-
-
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Readers
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -268,7 +229,9 @@ def _check_config(config: Kitti360Config) -> Tuple[List[str], List[int]]:
 
 
 def sensor_stamps(paths: Kitti360Paths, sensor: str, frames: Sequence[int]) -> np.ndarray:
-    """Timestamps (int64 ns) of ``frames`` of a sensor, checking that files and timestamps agree."""
+    """Timestamps (int64 ns) of ``frames`` of a sensor, checking that files and timestamps agree.
+
+    ``paths`` may be any layout with ``timestamps``, ``data_dir`` and ``frame_file`` (``KittiRawPaths`` too)."""
     stamps_file = paths.timestamps(sensor)
     stamps = read_timestamps(stamps_file)
     data = _require(paths.data_dir(sensor), "data folder")
@@ -311,43 +274,6 @@ def reference_trajectory(paths: Kitti360Paths, calib: Kitti360Calibration, frame
     return indices[keep], poses[keep], source
 
 
-def _perturbed(config: Kitti360Config, T_ref: Dict[str, np.ndarray]) -> Dict[str, Tuple[np.ndarray, float]]:
-    from moisst_ns.datasets.synth import paper_perturbation
-
-    rng = np.random.default_rng(config.seed)
-    priors = {}
-    for name in sorted(T_ref):
-        signs = rng.choice([-1.0, 1.0], size=7)
-        if name == REFERENCE or config.perturb == "none":
-            priors[name] = (T_ref[name].copy(), 0.0)
-            continue
-        priors[name] = paper_perturbation(T_ref[name], 0.0, signs, config.perturb_translation, config.perturb_rotation,
-                                          config.perturb_time)
-    return priors
-
-
-def _prepare_out(config: Kitti360Config) -> Path:
-    out = Path(config.out)
-    root = Path(config.root).resolve()
-    if out.resolve() == root or root in out.resolve().parents:
-        raise Kitti360Error(out, "--out", "must not be inside the KITTI-360 folder (nothing is written into the dataset)")
-    if out.exists() and not out.is_dir():
-        raise Kitti360Error(out, "--out", "exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()):
-        if not config.overwrite:
-            raise Kitti360Error(out, "--out", "exists and is not empty; pass --overwrite to replace its dataset")
-        clear_generated_dataset(out)
-    out.mkdir(parents=True, exist_ok=True)
-    return out
-
-
-def _scaled_intrinsics(K: np.ndarray, size: Tuple[int, int], factor: int) -> Dict[str, object]:
-    """moisst-rig PINHOLE intrinsics (pixel centres at +0.5) of a KITTI K after shrinking by ``factor``."""
-    w, h = size
-    return {"camera_model": "PINHOLE", "w": w // factor, "h": h // factor, "fl_x": float(K[0, 0]) / factor,
-            "fl_y": float(K[1, 1]) / factor, "cx": (float(K[0, 2]) + 0.5) / factor, "cy": (float(K[1, 2]) + 0.5) / factor}
-
-
 def convert(config: Kitti360Config) -> Path:
     """Write the ``moisst-rig/1`` dataset of ``config`` into ``config.out``; returns that folder.
 
@@ -371,13 +297,8 @@ def convert(config: Kitti360Config) -> Path:
                             f"pose of frame {int(pose_idx[-1])} but {paths.timestamps(REFERENCE)} has {len(ref_all)} timestamps")
     out = _prepare_out(config)
 
-    import roma
-    import torch
-
-    quats = roma.rotmat_to_unitquat(torch.from_numpy(poses[:, :3, :3])).numpy()
-    quats = quats * np.where(quats[:, 3:4] < 0, -1.0, 1.0)
-    write_tum(out / "reference_poses.txt", (ref_all[pose_idx] - origin) * 1e-9, poses[:, :3, 3], quats,
-              header=f"world_T_image_00 (rectified) from {pose_source.name} of {config.sequence}: timestamp tx ty tz qx qy qz qw")
+    _write_trajectory(out / "reference_poses.txt", (ref_all[pose_idx] - origin) * 1e-9, poses,
+                      header=f"world_T_image_00 (rectified) from {pose_source.name} of {config.sequence}: timestamp tx ty tz qx qy qz qw")
 
     factor = config.downscale
     fish_K = pinhole_for_fisheye(config.fisheye_fov, config.fisheye_size)
@@ -418,16 +339,8 @@ def convert(config: Kitti360Config) -> Path:
                 else:
                     cv2.imwrite(str(out / rel), image)
             rig_frames.append({"sensor": sensor, "timestamp": round((int(stamp) - origin) * 1e-9, 9), "file_path": rel})
-    rig_frames.sort(key=lambda f: (f["timestamp"], f["sensor"]))
-
-    priors = _perturbed(config, calib.T_ref)
-    rig_sensors = {sensor: ("lidar" if sensor == VELODYNE else "camera", priors[sensor][0], priors[sensor][1],
-                            intr.get(sensor, {})) for sensor in sensors}
-    meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")}
-    meta.update(generator="moisst-kitti360-to-rig", time_origin=format_timestamp(origin), trajectory_source=pose_source.name,
-                note="fisheye cameras rectified to pinhole images with the fisheye's own axes; ground_truth.json is the "
-                     "dataset's calibration (its LiDAR calibration is itself good to a few cm only)")
-    rig = rig_json(REFERENCE, "reference_poses.txt", rig_sensors, rig_frames, meta)
-    (out / "rig.json").write_text(json.dumps(rig, indent=1) + "\n")
-    Calibration(REFERENCE, {s: calib.T_ref[s] for s in sensors}, {s: 0.0 for s in sensors}).write(out / "ground_truth.json")
+    _write_rig(out, config, calib.T_ref, sensors, [VELODYNE], intr, rig_frames, generator="moisst-kitti360-to-rig",
+               time_origin=format_timestamp(origin), trajectory_source=pose_source.name,
+               note="fisheye cameras rectified to pinhole images with the fisheye's own axes; ground_truth.json is the "
+                    "dataset's calibration (its LiDAR calibration is itself good to a few cm only)")
     return out

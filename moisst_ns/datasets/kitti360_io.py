@@ -1,18 +1,24 @@
 """Readers of KITTI-360's download layout (calibration text files, MEI fisheye YAML, poses, timestamps), each
-failing with a one-line ``Kitti360Error`` naming the file and the key. Used by ``moisst_ns.datasets.kitti360``."""
+failing with a one-line ``Kitti360Error`` naming the file and the key, and the output steps both KITTI converters
+share (output folder, priors, intrinsics, trajectory, rig.json). Used by ``moisst_ns.datasets.kitti360`` and
+``moisst_ns.datasets.kitti_raw`` (KITTI raw uses the same calibration key files and timestamps)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Dict, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from moisst_ns.rig.format import RigFormatError
+from moisst_ns.datasets.output import clear_generated_dataset
+from moisst_ns.rig.format import Calibration, RigFormatError, rig_json, write_tum
 
 PERSPECTIVE = ("image_00", "image_01")
-"""The rectified perspective cameras."""
+"""The rectified perspective cameras (KITTI-360; in KITTI raw all four cameras are)."""
+REFERENCE = "image_00"
+"""The reference sensor of both converters: the rectified left grey camera."""
 
 
 class Kitti360Error(RigFormatError):
@@ -45,7 +51,7 @@ def _check_rotation(rotation: np.ndarray, file: Path, key: str, tol: float = 1e-
 
 def _require(path: Path, what: str) -> Path:
     if not path.exists():
-        raise Kitti360Error(path, what, "not found (see docs/kitti360.md for the folders to download)")
+        raise Kitti360Error(path, what, "not found (see docs/kitti360.md or docs/kitti-raw.md for the folders to download)")
     return path
 
 
@@ -114,14 +120,18 @@ class Perspective:
     """3x3 ``R_rect_0X``: unrectified -> rectified camera frame."""
     size: Tuple[int, int]
     """(width, height) of ``S_rect_0X``."""
+    offset: Optional[np.ndarray] = None
+    """``K^-1 P_rect_0X[:, 3]``: ``P_rect_0X = K [I | offset]``, so rectified camera X sees a point ``x_0`` of
+    rectified camera 0 at ``x_0 + offset`` (zero for camera 0; KITTI raw's stereo baselines)."""
 
 
-def read_perspective(path: Path, cameras: Sequence[str]) -> Dict[str, Perspective]:
-    """``perspective.txt`` -> {image_0X: Perspective} for the perspective cameras among ``cameras``."""
+def read_perspective(path: Path, cameras: Sequence[str], perspective: Sequence[str] = PERSPECTIVE) -> Dict[str, Perspective]:
+    """``perspective.txt`` (KITTI-360) or ``calib_cam_to_cam.txt`` (KITTI raw) -> {image_0X: Perspective} for the
+    cameras among ``cameras`` that are in ``perspective``."""
     table = read_key_values(path)
     out = {}
     for cam in cameras:
-        if cam not in PERSPECTIVE:
+        if cam not in perspective:
             continue
         n = cam[-2:]
         P = _values(table, f"P_rect_{n}", 12, path).reshape(3, 4)
@@ -132,7 +142,9 @@ def read_perspective(path: Path, cameras: Sequence[str]) -> Dict[str, Perspectiv
             raise Kitti360Error(path, f"S_rect_{n}", f"expected a positive integer width and height, got {w} {h}")
         if P[0, 0] <= 0 or P[1, 1] <= 0:
             raise Kitti360Error(path, f"P_rect_{n}", "focal lengths must be > 0")
-        out[cam] = Perspective(K=P[:, :3].copy(), R_rect=R, size=(int(w), int(h)))
+        if abs(np.linalg.det(P[:, :3])) < 1e-12:
+            raise Kitti360Error(path, f"P_rect_{n}", "its left 3x3 block (K) is singular")
+        out[cam] = Perspective(K=P[:, :3].copy(), R_rect=R, size=(int(w), int(h)), offset=np.linalg.solve(P[:, :3], P[:, 3]))
     return out
 
 
@@ -307,3 +319,68 @@ def format_timestamp(ns: int) -> str:
     """Inverse of one ``read_timestamps`` line."""
     text = str(np.datetime64(int(ns), "ns"))
     return text.replace("T", " ")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Output steps shared by the converters (their configs have out, root, overwrite, perturb, seed, perturb_*)
+
+
+def _perturbed(config, T_ref: Dict[str, np.ndarray]) -> Dict[str, Tuple[np.ndarray, float]]:
+    from moisst_ns.datasets.synth import paper_perturbation
+
+    rng = np.random.default_rng(config.seed)
+    priors = {}
+    for name in sorted(T_ref):
+        signs = rng.choice([-1.0, 1.0], size=7)
+        if name == REFERENCE or config.perturb == "none":
+            priors[name] = (T_ref[name].copy(), 0.0)
+            continue
+        priors[name] = paper_perturbation(T_ref[name], 0.0, signs, config.perturb_translation, config.perturb_rotation,
+                                          config.perturb_time)
+    return priors
+
+
+def _prepare_out(config, dataset: str = "KITTI-360") -> Path:
+    out = Path(config.out)
+    root = Path(config.root).resolve()
+    if out.resolve() == root or root in out.resolve().parents:
+        raise Kitti360Error(out, "--out", f"must not be inside the {dataset} folder (nothing is written into the dataset)")
+    if out.exists() and not out.is_dir():
+        raise Kitti360Error(out, "--out", "exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        if not config.overwrite:
+            raise Kitti360Error(out, "--out", "exists and is not empty; pass --overwrite to replace its dataset")
+        clear_generated_dataset(out)
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _scaled_intrinsics(K: np.ndarray, size: Tuple[int, int], factor: int) -> Dict[str, object]:
+    """moisst-rig PINHOLE intrinsics (pixel centres at +0.5) of a KITTI K after shrinking by ``factor``."""
+    w, h = size
+    return {"camera_model": "PINHOLE", "w": w // factor, "h": h // factor, "fl_x": float(K[0, 0]) / factor,
+            "fl_y": float(K[1, 1]) / factor, "cx": (float(K[0, 2]) + 0.5) / factor, "cy": (float(K[1, 2]) + 0.5) / factor}
+
+
+def _write_trajectory(path: Path, stamps_s: np.ndarray, poses: np.ndarray, header: str) -> None:
+    """TUM file of ``poses`` (K, 4, 4) at ``stamps_s`` (quaternions with ``qw >= 0``)."""
+    import roma
+    import torch
+
+    quats = roma.rotmat_to_unitquat(torch.from_numpy(np.ascontiguousarray(poses[:, :3, :3]))).numpy()
+    quats = quats * np.where(quats[:, 3:4] < 0, -1.0, 1.0)
+    write_tum(path, stamps_s, poses[:, :3, 3], quats, header=header)
+
+
+def _write_rig(out: Path, config, T_ref: Dict[str, np.ndarray], sensors: Sequence[str], lidars: Sequence[str],
+               intrinsics: Dict[str, Dict[str, object]], frames: List[dict], **metadata) -> None:
+    """``rig.json`` (priors per ``config.perturb``; metadata: the config and ``metadata``) and ``ground_truth.json``
+    (``T_ref``, offsets 0) of ``sensors`` into ``out``; ``frames`` are sorted by time first."""
+    frames.sort(key=lambda f: (f["timestamp"], f["sensor"]))
+    priors = _perturbed(config, T_ref)
+    rig_sensors = {s: ("lidar" if s in lidars else "camera", priors[s][0], priors[s][1], intrinsics.get(s, {})) for s in sensors}
+    meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")}
+    meta.update(metadata)
+    rig = rig_json(REFERENCE, "reference_poses.txt", rig_sensors, frames, meta)
+    (out / "rig.json").write_text(json.dumps(rig, indent=1) + "\n")
+    Calibration(REFERENCE, {s: T_ref[s] for s in sensors}, {s: 0.0 for s in sensors}).write(out / "ground_truth.json")
