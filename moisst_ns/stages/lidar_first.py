@@ -33,6 +33,8 @@ from scipy.optimize import least_squares
 from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
 from moisst_ns.stages.lidar_checks import release_check, split_half_spread
 from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, Trajectory, place_points, placement_jacobian, trajectory_at
+from moisst_ns.stages.lidar_map import CameraStageError
+from moisst_ns.stages.lidar_view import SharedView, view_residuals
 from moisst_ns.stages.observability import PARAMETERS, UNITS, Observability, analyse_observability
 
 
@@ -103,6 +105,15 @@ class LidarFirstConfig:
     the 320x240 street rig beside 35 s for the stage). The formal sigma treats the correspondences as independent and
     misses what the drive does not determine: on a 6-scan drive (2 m, 2 deg of turn) the estimate was 24-48 cm off per
     axis with formal sigmas of 1-4 cm; the halves differed by metres."""
+    shared_view: bool = False
+    """Fit the scans' agreement with the reference camera's images too (``lidar_view``: a LiDAR depth edge must fall on
+    an image edge of the reference frame nearest it in time, whose pose is known), jointly with their agreement with
+    each other. Motion alone cannot place a LiDAR on a straight drive (KITTI raw 0048: lever arm and roll weak, the
+    estimate 1.2-1.4 m off); one shared frame determines the lateral and vertical lever arm and the roll. Needs a
+    camera reference sensor. The edge distances enter the fit in units of the point-to-plane residuals' own scatter
+    (``SharedView.scale``): each kind weighted by its noise, so a drive whose motion determines a parameter keeps it
+    (exact synthetic scans scatter by 1 mm, an edge by pixels) and one whose motion does not gets it from the view.
+    Off by default until measured to help (docs/lidar-first.md, "The shared view")."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -304,10 +315,23 @@ class LidarResult:
     measured), or None when ``split_half`` is off."""
 
 
+def joint_residuals(traj: Trajectory, ext: Extrinsic, scans: ScanSet, corr: Correspondences, shared: Optional[SharedView],
+                    increment: np.ndarray, config: LidarFirstConfig) -> Tuple[Float[np.ndarray, "num"], Float[np.ndarray, "num 7"]]:
+    """The point-to-plane residuals (metres) followed by the edge distances times ``shared.scale``, and their Jacobian
+    (Jacobian order: rotation vector, translation, time offset)."""
+    residuals, jac = consistency_residuals(traj, ext, scans, corr, increment)
+    if shared is None or shared.rows is None or len(shared.rows.point) == 0:
+        return residuals, jac
+    res_v, jac_v = view_residuals(traj, ext, scans, shared.view, shared.rows, increment)
+    return np.concatenate([residuals, shared.scale * res_v]), np.concatenate([jac, shared.scale * jac_v])
+
+
 def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndarray, start: Extrinsic, prior: Extrinsic, free: np.ndarray,
-         config: LidarFirstConfig, log: Callable[[str], None], where: str) -> Tuple[Extrinsic, List[Dict[str, float]]]:
+         config: LidarFirstConfig, log: Callable[[str], None], where: str,
+         view: Optional[SharedView] = None) -> Tuple[Extrinsic, List[Dict[str, float]]]:
     """Coarse-to-fine outer iterations of the parameters ``free`` (Jacobian order: rotation, translation, delta) from
-    ``start``; ``prior`` anchors the bound on delta, ``where`` (``file: sensors.NAME``) names the sensor in errors.
+    ``start``; ``prior`` anchors the bound on delta, ``where`` (``file: sensors.NAME``) names the sensor in errors,
+    ``view`` (the reference camera's frames and the scans' depth edges) adds the shared-view residuals.
 
     Returns:
         The estimate and its per-iteration history (``LidarResult.history``).
@@ -321,6 +345,7 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
         reach = config.start_baseline * 2.0**outer
         active = pairs[(baselines <= reach) | (pairs[:, 1] - pairs[:, 0] <= 2)]  # neighbours always pair
         corr = find_correspondences(traj, ext, scans, active, radius, config)
+        shared = view.at(traj, ext, scans, active, consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0]) if view is not None else None
         if outer == 0 and len(corr.src) < max(100, 0.02 * corr.candidates):
             raise LidarFirstError(
                 f"{where}: the scans do not overlap: {len(corr.src)} of {corr.candidates} "
@@ -336,7 +361,7 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
             if key not in cache:
                 inc = np.zeros(7)
                 inc[free] = free_inc
-                residuals, jac = consistency_residuals(traj, ext, scans, corr, inc)
+                residuals, jac = joint_residuals(traj, ext, scans, corr, shared, inc, config)
                 cache.clear()
                 cache[key] = residuals, jac[:, free]
             return cache[key]
@@ -347,7 +372,7 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
         inc = np.zeros(7)
         inc[free] = solution.x
         ext = ext.updated(inc)
-        residuals = solution.fun
+        residuals = solution.fun[:len(corr.src)]
         inliers = np.abs(residuals) < config.huber
         change = (float(np.linalg.norm(inc[3:6])), float(np.linalg.norm(inc[:3])), abs(float(inc[6])))
         history.append({
@@ -358,8 +383,12 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
             "elapsed_s": time.perf_counter() - begun, "T_ref_sensor": ext.matrix().tolist(), "time_offset": ext.time_offset,
         })
         h = history[-1]
+        if shared is not None:
+            edge_px = np.abs(solution.fun[len(corr.src):]) / max(shared.scale, 1e-12)
+            h.update(view_rows=int(len(edge_px)), view_median_px=float(np.median(edge_px)) if len(edge_px) else float("nan"))
         log(f"[lidar-first] {sensor} it {outer}: radius {radius:.2f} m, pairs {h['pairs']}, {h['correspondences']} corr., "
-            f"inlier rms {1000 * h['inlier_rms_m']:.1f} mm, step {100 * change[0]:.2f} cm / {np.rad2deg(change[1]):.3f} deg / "
+            + (f"{h['view_rows']} edge points at {h['view_median_px']:.2f} px, " if shared is not None else "")
+            + f"inlier rms {1000 * h['inlier_rms_m']:.1f} mm, step {100 * change[0]:.2f} cm / {np.rad2deg(change[1]):.3f} deg / "
             f"{1000 * change[2]:.2f} ms")
         finest = radius <= config.radius_end and reach >= longest
         if finest and all(c < tol for c, tol in zip(change, config.tolerance)):
@@ -390,13 +419,22 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     if len(free) == 0:
         raise LidarFirstError("estimate_extrinsic and estimate_time_offset are both off: nothing to calibrate")
     where = f"{rig.root / 'rig.json'}: sensors.{sensor}"
-    ext, history = _fit(traj, scans, pairs, baselines, prior, prior, free, config, log, where)
+    try:
+        view = SharedView.of(rig, traj, scans) if config.shared_view else None
+    except CameraStageError as err:
+        raise LidarFirstError(str(err)) from None
+    ext, history = _fit(traj, scans, pairs, baselines, prior, prior, free, config, log, where, view)
     corr = find_correspondences(traj, ext, scans, pairs, config.radius_end, config)
-    residuals, jac = consistency_residuals(traj, ext, scans, corr, np.zeros(7))
+    shared = view.at(traj, ext, scans, pairs, consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0]) if view is not None else None
+    residuals, jac = joint_residuals(traj, ext, scans, corr, shared, np.zeros(7), config)
     observability = analyse_observability(jac, residuals, huber_weights(residuals, config.huber), traj, scans.stamps + ext.time_offset, ext.rotation)
+    if shared is not None:  # weak now means that neither the motion nor the shared view determines it
+        for dof in observability.dofs:
+            if dof.weak:
+                dof.reason += f"; nor do the {len(shared.rows.point)} LiDAR depth edges seen in the reference camera's frames"
     held = None
     if len(free) < 7 and config.release_check:
-        released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where)
+        released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where, view)
         held = release_check(ext, released, free, observability)
         if held["note"]:
             log(f"[lidar-first] {sensor}: {held['note']}")
@@ -406,7 +444,7 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
 
         def half(p: np.ndarray, b: np.ndarray) -> Optional[Extrinsic]:
             try:
-                return _fit(traj, scans, p, b, ext, prior, free, fine, lambda line: None, where)[0]
+                return _fit(traj, scans, p, b, ext, prior, free, fine, lambda line: None, where, view)[0]
             except LidarFirstError:  # the half's scans do not overlap
                 return None
 

@@ -1,0 +1,39 @@
+"""The LiDAR-first stage alone on a rig with ground truth, with ``LidarFirstConfig`` changes (docs/lidar-first.md, "The
+shared view"): prints each LiDAR's error per axis (cm, deg, ms), its weak parameters, formal sigmas and wall time.
+
+Usage: .venv/bin/python scripts/lidar_stage.py RIG [FIELD=VALUE ...]
+(e.g. ``shared_view=True split_half=False points_per_scan=1000``.)
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from moisst_ns.rig.format import load_calibration, load_rig
+from moisst_ns.rig.trust import parameter_difference
+from moisst_ns.stages.lidar_first import LidarFirstConfig, calibrate_lidars
+
+
+def main() -> None:
+    rig = load_rig(sys.argv[1])
+    truth = load_calibration(rig.root / "ground_truth.json")
+    changes = {}
+    for arg in sys.argv[2:]:
+        key, value = arg.split("=", 1)
+        changes[key] = type(getattr(LidarFirstConfig, key))(eval(value))
+    start = time.time()
+    result = calibrate_lidars(rig, LidarFirstConfig(**changes), log=lambda line: print(line, flush=True))
+    for name, lidar in result.lidars.items():
+        d = np.array(parameter_difference(result.calibration.T_ref_sensor[name], result.calibration.time_offset[name],
+                                          truth.T_ref_sensor[name], truth.time_offset[name]))
+        print(f"RESULT {sys.argv[1]} {changes} {name}: error {np.linalg.norm(d[:3]) * 100:.2f} cm "
+              f"{np.rad2deg(np.linalg.norm(d[3:6])):.3f} deg {abs(d[6]) * 1000:.2f} ms; per axis cm {np.round(d[:3] * 100, 2)} "
+              f"deg {np.round(np.rad2deg(d[3:6]), 3)}; weak {lidar.observability.weak}; "
+              f"sigma {[f'{x.sigma:.3g}' for x in lidar.observability.dofs]}; wall {time.time() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
