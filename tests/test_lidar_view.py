@@ -89,7 +89,7 @@ def test_depth_edges_jump_threshold_and_neighbour_gap():
     # a box border with no firing for a little more than NEIGHBOUR_DEG between it and the wall: no edge; a little less: one
     left = -0.2 * np.arange(100, 0, -1)  # -20 .. -0.2 deg, the wall at 20 m
     for gap, found in ((NEIGHBOUR_DEG + 0.05, False), (NEIGHBOUR_DEG - 0.05, True)):
-        azimuths = np.r_[left, left[-1] + gap + 0.2 * np.arange(100)]  # the box at 8 m from 0.35 / 0.45 deg on
+        azimuths = np.r_[left, left[-1] + gap + 0.2 * np.arange(100)]  # the box at 8 m from 0.45 / 0.35 deg on
         points, _, az = spherical_scan([-5.0], azimuths, lambda e, a: 8.0 if a > 0 else 20.0)
         np.testing.assert_array_equal(depth_edges(points), [len(left)] if found else np.zeros(0, dtype=np.int64))
 
@@ -100,7 +100,7 @@ def test_depth_edges_ignore_smooth_range_changes():
     points, _, _ = spherical_scan(RINGS, AZIMUTHS, lambda e, a: 10.0 / (np.cos(np.radians(a)) * np.cos(np.radians(e))))
     assert np.ptp(np.linalg.norm(points, axis=1)) > 9.0
     assert len(depth_edges(shuffled(points)[0])) == 0
-    ramp, _, _ = spherical_scan(RINGS, AZIMUTHS, lambda e, a: 15.0 + 0.05 * a)  # 3 m to 18 m, 1 cm per neighbour
+    ramp, _, _ = spherical_scan(RINGS, AZIMUTHS, lambda e, a: 15.0 + 0.05 * a)  # 12 m to 18 m, 1 cm per neighbour
     assert len(depth_edges(ramp)) == 0
 
 
