@@ -31,8 +31,6 @@ from moisst_ns.rig.format import Rig
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points, placement_jacobian
 from moisst_ns.stages.lidar_map import CameraStageError, ImageStack, PinholeModel, bilinear, project, visible
 
-ZBUFFER = dict(cell=4, margin_m=0.3, margin_fraction=0.03, max_depth=40.0)
-"""The camera-registration stage's z-buffer settings (``CameraRegistrationConfig``: cell, occlusion margins, depth)."""
 MIN_DEPTH = 3.0
 """Points nearer than this to the camera are not used (the vehicle, and a pixel's footprint varies fast), metres."""
 MAX_DISTANCE = 30.0
@@ -152,6 +150,9 @@ def view_rows(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView, edge
     Returns:
         The rows (empty when no frame sees any edge point).
     """
+    from moisst_ns.stages.camera_registration import CameraRegistrationConfig  # its z-buffer settings, one place
+
+    c = CameraRegistrationConfig()
     points, frames = [], []
     model = view.distance.model
     for k in scan_ids:
@@ -163,7 +164,7 @@ def view_rows(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView, edge
         world = place_points(traj, ext, scans.points[part], scans.times[part])
         cam = (world - view.poses[a, :3, 3]) @ view.poses[a, :3, :3]
         uv, z = (t.numpy() for t in project(model, torch.from_numpy(cam)))
-        seen = visible(uv, z, model, ZBUFFER["cell"], ZBUFFER["margin_m"], ZBUFFER["margin_fraction"], ZBUFFER["max_depth"]) & (z > MIN_DEPTH)
+        seen = visible(uv, z, model, c.zbuffer_cell, c.occlusion_margin_m, c.occlusion_margin_fraction, c.max_depth) & (z > MIN_DEPTH)
         keep = edges[k][seen[edges[k]]]
         points.append(keep + part.start), frames.append(np.full(len(keep), a))
     if not points:
