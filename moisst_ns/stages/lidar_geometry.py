@@ -70,7 +70,10 @@ class PointTimes:
         return cls(unique, index.reshape(-1))
 
     def __getitem__(self, selection) -> "PointTimes":
-        return PointTimes(self.unique, self.index[selection])
+        """The selected points, keeping only the distinct times they use (a few hundred rows of a 100 k-point
+        sweep must not evaluate the trajectory at all of its times)."""
+        used, index = np.unique(self.index[selection], return_inverse=True)
+        return PointTimes(self.unique[used], index.reshape(-1))
 
     def __len__(self) -> int:
         return len(self.index)
