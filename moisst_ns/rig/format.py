@@ -54,6 +54,8 @@ class SensorSpec:
     """Prior delta, seconds: a frame stamped t by this sensor was captured at reference time t + delta."""
     intrinsics: Dict[str, object] = field(default_factory=dict)
     """Camera only: nerfstudio transforms.json names (camera_model, w, h, fl_x, fl_y, cx, cy, k1, k2, p1, p2)."""
+    readout_time: float = 0.0
+    """Camera only: rolling-shutter readout, seconds, first row to last (the stamp is the middle row's time); 0: global."""
 
 
 @dataclass
@@ -204,7 +206,7 @@ def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
         raise RigFormatError(file, f"{where}.T_ref_sensor", "missing")
     allowed = {"type", "T_ref_sensor", "time_offset"}
     if stype == "camera":
-        allowed |= set(CAMERA_KEYS) | set(DISTORTION_KEYS) | {"k3", "k4"}
+        allowed |= set(CAMERA_KEYS) | set(DISTORTION_KEYS) | {"k3", "k4", "readout_time"}
     unknown = sorted(set(raw) - allowed)
     if unknown:
         raise RigFormatError(file, f"{where}.{unknown[0]}", f"unknown key for a {stype}")
@@ -235,6 +237,9 @@ def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
             intr[key] = _number(raw.get(key, 0.0), file, f"{where}.{key}")
         if model == "PINHOLE" and any(intr[k] != 0.0 for k in DISTORTION_KEYS + ("k3", "k4")):
             raise RigFormatError(file, f"{where}.camera_model", "PINHOLE cameras take no distortion; use OPENCV")
+        spec.readout_time = _number(raw.get("readout_time", 0.0), file, f"{where}.readout_time")
+        if spec.readout_time < 0:
+            raise RigFormatError(file, f"{where}.readout_time", f"must be >= 0 seconds, got {spec.readout_time!r}")
         spec.intrinsics = intr
     return spec
 
@@ -298,7 +303,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
     if sensors[ref].time_offset != 0.0:
         raise RigFormatError(file, f"sensors.{ref}.time_offset", "the reference sensor's time offset must be 0")
     traj_path = resolve_in(root, raw["trajectory"], file, "trajectory")
-    stamps, positions, quats = load_tum(traj_path)
+    traj_stamps, positions, quats = load_tum(traj_path)
 
     if not isinstance(raw["frames"], list) or not raw["frames"]:
         raise RigFormatError(file, "frames", "must be a non-empty list")
@@ -338,24 +343,20 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
     for name in sensors:
         if not any(f.sensor == name for f in frames):
             raise RigFormatError(file, f"sensors.{name}", "has no frames")
-    return Rig(
-        root=root,
-        reference_sensor=ref,
-        sensors=sensors,
-        frames=frames,
-        trajectory_file=raw["trajectory"],
-        trajectory_stamps=stamps,
-        trajectory_positions=positions,
-        trajectory_quats_xyzw=quats,
-    )
+        stamps = np.unique([f.timestamp for f in frames if f.sensor == name])
+        if len(stamps) > 1 and sensors[name].readout_time >= (period := round(float(np.median(np.diff(stamps))), 9)):
+            raise RigFormatError(file, f"sensors.{name}.readout_time", f"must be < the camera's frame period {period:.6g} s, got {sensors[name].readout_time!r}")
+    return Rig(root=root, reference_sensor=ref, sensors=sensors, frames=frames, trajectory_file=raw["trajectory"],
+               trajectory_stamps=traj_stamps, trajectory_positions=positions, trajectory_quats_xyzw=quats)
 
 
 def rig_to_json(rig: Rig) -> dict:
     """The rig.json content of ``rig`` (inverse of ``load_rig``)."""
+    rolling = {n: {"readout_time": s.readout_time} for n, s in rig.sensors.items() if s.readout_time}
     return rig_json(
         rig.reference_sensor,
         rig.trajectory_file,
-        {n: (s.type, s.T_ref_sensor, s.time_offset, s.intrinsics) for n, s in rig.sensors.items()},
+        {n: (s.type, s.T_ref_sensor, s.time_offset, {**s.intrinsics, **rolling.get(n, {})}) for n, s in rig.sensors.items()},
         [{"sensor": f.sensor, "timestamp": f.timestamp, "file_path": f.file_path} for f in rig.frames],
     )
 

@@ -1,0 +1,161 @@
+"""The rig of ``moisst-synth``: sensor mounts, true extrinsics and time offsets, the MOISST paper's prior
+perturbation, and the generator's seeded random streams. ``config`` arguments are ``synth.SynthConfig`` objects (only
+their fields are read)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, Sequence, Tuple
+
+import numpy as np
+
+from moisst_ns.datasets.synth_scene import rot_x, rot_y, rot_z
+
+REFERENCE = "cam_front"
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Small rotation helpers (numpy, float64)
+
+
+def _pose(rotation: np.ndarray, translation) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = translation
+    return pose
+
+
+def _inv(pose: np.ndarray) -> np.ndarray:
+    return _pose(pose[:3, :3].T, -pose[:3, :3].T @ pose[:3, 3])
+
+
+def _orthonormalise(rotation: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(rotation)
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
+# OpenCV camera axes expressed in the vehicle frame (x forward, y left, z up): cam x = right = -y_V,
+# cam y = down = -z_V, cam z = forward = x_V.
+V_R_OPENCV = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def perturbation_rotation(signs: Sequence[float], degrees: float) -> np.ndarray:
+    """``Rx(sx a) @ Ry(sy a) @ Rz(sz a)``, the rotation part of the paper's prior perturbation."""
+    a = np.deg2rad(degrees)
+    return rot_x(signs[0] * a) @ rot_y(signs[1] * a) @ rot_z(signs[2] * a)
+
+
+def paper_perturbation(T_ref_sensor: np.ndarray, time_offset: float, signs: Sequence[float], translation: float,
+                       rotation_deg: float, time: float) -> Tuple[np.ndarray, float]:
+    """The MOISST paper's prior perturbation (section IV) of one sensor.
+
+    Args:
+        T_ref_sensor: true extrinsic (4x4).
+        time_offset: true delta, seconds.
+        signs: 7 signs (+-1): translation x, y, z; rotation about x, y, z; time.
+        translation: metres per axis. rotation_deg: degrees about each axis. time: seconds.
+
+    Returns:
+        (prior extrinsic ``[R Rx Ry Rz | t + s * translation]``, prior delta ``time_offset + s * time``).
+    """
+    prior = T_ref_sensor.copy()
+    prior[:3, :3] = T_ref_sensor[:3, :3] @ perturbation_rotation(signs[3:6], rotation_deg)
+    prior[:3, 3] = T_ref_sensor[:3, 3] + np.asarray(signs[:3]) * translation
+    return prior, float(time_offset + signs[6] * time)
+
+
+def _streams(seed: int) -> Dict[str, np.random.SeedSequence]:
+    names = ("path", "rig", "scene", "perturb", "lidar", "lidar_noise", "pose_noise", "movers", "exposure", "lidar_dropout")
+    return dict(zip(names, np.random.SeedSequence(seed).spawn(len(names))))
+
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Rig
+
+
+@dataclass
+class SensorTruth:
+    """A sensor's true calibration and trigger phase."""
+
+    name: str
+    type: str
+    T_ref_sensor: np.ndarray
+    time_offset: float
+    phase: float
+    """Its frames are stamped ``T0 + k * PERIOD + phase`` on its own clock."""
+
+
+# Nominal mounts in the vehicle frame (x forward, y left, z up): position, yaw, pitch-down (degrees).
+MOUNTS = {
+    "cam_front": ((1.8, 0.0, 1.6), 0.0, 3.0),
+    "cam_front_right": ((1.8, -0.55, 1.6), -10.0, 3.0),
+    "cam_left": ((1.2, 0.8, 1.5), 85.0, 5.0),
+    "lidar": ((1.5, 0.0, 2.0), 0.0, 0.0),
+}
+PHASES = {"cam_front": 0.0, "cam_front_right": 0.025, "cam_left": 0.05, "lidar": 0.075}
+
+
+def vehicle_T_sensor(name: str, jitter_t=(0.0, 0.0, 0.0), jitter_r=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Mount of a sensor on the vehicle, with optional jitter (metres; radians about the sensor's own axes)."""
+    pos, yaw, pitch = MOUNTS[name]
+    body = rot_z(np.deg2rad(yaw)) @ rot_y(np.deg2rad(pitch))
+    axes = V_R_OPENCV if name.startswith("cam") else np.eye(3)
+    rot = body @ axes @ rot_x(jitter_r[0]) @ rot_y(jitter_r[1]) @ rot_z(jitter_r[2])
+    return _pose(_orthonormalise(rot), np.asarray(pos) + np.asarray(jitter_t))
+
+
+def _rig_seed(config) -> int:
+    return config.seed if config.rig_seed is None else config.rig_seed
+
+
+def knock_mount(config, truth: Dict[str, SensorTruth]) -> Dict[str, SensorTruth]:
+    """The truth with ``--knock SENSOR DEG`` applied: that sensor turned about the vehicle's z axis, in place."""
+    if config.knock is None:
+        return truth
+    name, degrees = config.knock
+    v_T_ref = vehicle_T_sensor(REFERENCE)
+    sensor = truth[name]
+    v_T_s = v_T_ref @ sensor.T_ref_sensor
+    v_T_s[:3, :3] = _orthonormalise(rot_z(np.deg2rad(degrees)) @ v_T_s[:3, :3])
+    ref_T = _inv(v_T_ref) @ v_T_s
+    ref_T[:3, :3] = _orthonormalise(ref_T[:3, :3])
+    ref_T[3] = [0.0, 0.0, 0.0, 1.0]
+    return {**truth, name: SensorTruth(name, sensor.type, ref_T, sensor.time_offset, sensor.phase)}
+
+
+def make_truth(config) -> Dict[str, SensorTruth]:
+    """True extrinsics (in the reference camera's frame) and time offsets; seeded."""
+    rng = np.random.default_rng(_streams(_rig_seed(config))["rig"])
+    v_T_ref = vehicle_T_sensor(REFERENCE)
+    sign = rng.choice([-1.0, 1.0])
+    signs = {"cam_front_right": sign, "cam_left": -sign, "lidar": rng.choice([-1.0, 1.0])}
+    truth = {REFERENCE: SensorTruth(REFERENCE, "camera", np.eye(4), 0.0, PHASES[REFERENCE])}
+    for name in ("cam_front_right", "cam_left", "lidar"):
+        jt = rng.uniform(-0.03, 0.03, 3)
+        jr = np.deg2rad(rng.uniform(-1.0, 1.0, 3))
+        delta = round(float(signs[name] * rng.uniform(0.02, 0.06)), 6)
+        if name == "lidar" and not config.lidar:
+            continue
+        ref_T = _inv(v_T_ref) @ vehicle_T_sensor(name, jt, jr)
+        ref_T[:3, :3] = _orthonormalise(ref_T[:3, :3])
+        ref_T[3] = [0.0, 0.0, 0.0, 1.0]
+        truth[name] = SensorTruth(name, "lidar" if name == "lidar" else "camera", ref_T, delta, PHASES[name])
+    return truth
+
+
+def make_priors(config, truth: Dict[str, SensorTruth]) -> Dict[str, Tuple[np.ndarray, float]]:
+    """Priors for rig.json: the truth (--perturb none) or the paper's perturbation (--perturb paper)."""
+    rng = np.random.default_rng(_streams(_rig_seed(config))["perturb"])
+    priors = {}
+    for name in ("cam_front", "cam_front_right", "cam_left", "lidar"):
+        signs = rng.choice([-1.0, 1.0], size=7)  # drawn for every sensor, so signs do not depend on --no-lidar
+        if name not in truth:
+            continue
+        t = truth[name]
+        if name == REFERENCE or config.perturb == "none":
+            priors[name] = (t.T_ref_sensor.copy(), t.time_offset)
+            continue
+        priors[name] = paper_perturbation(t.T_ref_sensor, t.time_offset, signs, config.perturb_translation,
+                                          config.perturb_rotation, config.perturb_time)
+    return priors
