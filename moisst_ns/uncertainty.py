@@ -19,7 +19,7 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
-from moisst_ns.stages.uncertainty_math import least_squares_sigma
+from moisst_ns.stages.uncertainty_math import inherited_sigma, least_squares_sigma
 
 FD_STEPS = (0.002, 0.002, 0.002, np.deg2rad(0.02), np.deg2rad(0.02), np.deg2rad(0.02), 0.0005)
 """Finite-difference half-steps: 2 mm, 0.02 deg, 0.5 ms (a tenth of a pixel's footprint at 10 m for a 320-pixel
@@ -175,10 +175,23 @@ def trust_entry(sigma: Optional[List[float]], verdict: str, weak: List[str], rea
     return SensorTrust([float(s) for s in sigma[:3]], [float(np.rad2deg(s)) for s in sigma[3:6]], float(sigma[6]), verdict, weak, reason)
 
 
+def _lidar_stage_sigma(entry: dict):
+    """A LiDAR's sigma from its LiDAR-first record (trust order; m, rad, s) and where it comes from: the formal one,
+    at least half the split-half difference and the release check's spread where those ran."""
+    sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
+    if entry.get("sigma_split_half"):  # the two halves of the drive fitted apart
+        sigma, source = list(np.fmax(sigma, [np.nan if v is None else v for v in entry["sigma_split_half"]])), "LiDAR-first formal and split-half"
+    if entry.get("held_check"):  # the free parameters' spread when the held ones are released
+        sigma, source = list(np.fmax(sigma, entry["held_check"]["sigma_release"])), source + " and release"
+    return sigma, source
+
+
 def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: Dict[str, str], hit: Dict[str, list],
                config: Optional[UncertaintyConfig]):
     """Sigma, weak parameters and verdict of every non-reference sensor; the prior replaces any estimate that the
-    held-back loss says is no better than it.
+    held-back loss says is no better than it. A camera of a rig whose LiDARs the LiDAR-first stage placed inherits
+    their sigma too (``uncertainty_math.inherited_sigma``; variances added): its registration and the scene rest on
+    their map.
 
     Args:
         pipeline: the trained pipeline.
@@ -206,6 +219,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
     final = Calibration(estimate.reference_sensor, dict(estimate.T_ref_sensor), dict(estimate.time_offset), {})
     drive_weak = {r.sensor: r.weak for r in drive}
     record, lines = {}, []
+    lidars = {n: _lidar_stage_sigma(e) for n, e in (stage or {"sensors": {}})["sensors"].items() if "observability" in e}
     for i, name in enumerate(rig.data.sensor_names):
         if i == rig.data.reference_index:
             continue
@@ -214,15 +228,14 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         if name in measured:
             m = measured[name]
             sigma, loss_est, loss_prior, source = m.sigma, m.loss_estimate, m.loss_prior, "held-back pixels"
-        elif entry is not None and "observability" in entry:
-            sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
-            if entry.get("sigma_split_half"):  # the two halves of the drive fitted apart
-                sigma, source = list(np.fmax(sigma, [np.nan if v is None else v for v in entry["sigma_split_half"]])), "LiDAR-first formal and split-half"
-            if entry.get("held_check"):  # the free parameters' spread when the held ones are released
-                sigma, source = list(np.fmax(sigma, entry["held_check"]["sigma_release"])), source + " and release"
+        elif name in lidars:
+            sigma, source = lidars[name]
         elif entry is not None:  # a camera held at its camera-registration estimate
             sigma = [np.inf if v is None else float(v) for v in entry["sigma"]]
             loss_est, loss_prior, source = entry["loss_estimate"], entry["loss_prior"], "camera-registration pairs"
+        if sigma is not None and name not in lidars and lidars:  # a camera placed against the LiDARs' map (and scene)
+            inherited = [inherited_sigma(estimate.T_ref_sensor[n], estimate.T_ref_sensor[name], s) ** 2 for n, (s, _) in lidars.items()]
+            sigma, source = list(np.sqrt(np.asarray(sigma, dtype=np.float64) ** 2 + np.sum(inherited, axis=0))), source + " and the LiDAR map's"
         blind = entry.get("blind") if entry is not None else None
         weak = list(drive_weak.get(name, []))
         if entry is not None:

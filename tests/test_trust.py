@@ -13,7 +13,7 @@ from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import SensorTrust, decide_verdict
 from moisst_ns.stages.drive_observability import analyse_drive, drive_table
-from moisst_ns.stages.uncertainty_math import least_squares_sigma
+from moisst_ns.stages.uncertainty_math import inherited_sigma, least_squares_sigma
 
 DT = 0.1
 
@@ -108,6 +108,40 @@ def test_unconstrained_parameter_gets_infinite_sigma():
     a = np.stack([np.ones(50), np.zeros(50)], 1)
     fit = least_squares_sigma(a, np.random.default_rng(0).normal(size=50), np.arange(50))
     assert np.isfinite(fit.sigma[0]) and np.isinf(fit.sigma[1])
+
+
+def _pose(rotvec, translation):
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = roma.rotvec_to_rotmat(torch.tensor(rotvec, dtype=torch.float64)).numpy(), translation
+    return pose
+
+
+def test_inherited_sigma_is_the_camera_error_that_follows_a_misplaced_map():
+    """One LiDAR parameter off by its sigma moves the map rigidly (ref_T_L' ref_T_L^-1); a camera following it ends
+    off by exactly the inherited sigma in each of its parameters (to first order), whatever the two mounts are."""
+    rng = np.random.default_rng(3)
+    ref_T_lidar, ref_T_cam = _pose(rng.normal(0, 1, 3), rng.normal(0, 1, 3)), _pose(rng.normal(0, 1, 3), rng.normal(0, 1, 3))
+    for k, step in enumerate([1e-4] * 3 + [1e-5] * 3):
+        sigma = np.zeros(7)
+        sigma[k] = step
+        moved = ref_T_lidar.copy()
+        if k < 3:
+            moved[k, 3] += step
+        else:
+            moved[:3, :3] = ref_T_lidar[:3, :3] @ _pose(np.eye(3)[k - 3] * step, np.zeros(3))[:3, :3]
+        followed = moved @ np.linalg.inv(ref_T_lidar) @ ref_T_cam
+        error = np.concatenate([followed[:3, 3] - ref_T_cam[:3, 3],
+                                roma.rotmat_to_rotvec(torch.from_numpy(ref_T_cam[:3, :3].T @ followed[:3, :3])).numpy(), [0.0]])
+        np.testing.assert_allclose(inherited_sigma(ref_T_lidar, ref_T_cam, sigma), np.abs(error), rtol=1e-3, atol=1e-12)
+    np.testing.assert_allclose(inherited_sigma(ref_T_lidar, ref_T_cam, [0, 0, 0, 0, 0, 0, 0.004]), [0] * 6 + [0.004])
+
+
+def test_inherited_sigma_variances_add_and_infinity_reaches_only_what_it_moves():
+    ref_T_lidar, ref_T_cam = np.eye(4), _pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])  # camera 1 m along the LiDAR's x
+    out = inherited_sigma(ref_T_lidar, ref_T_cam, [0.03, 0.0, 0.0, 0.0, 0.0, 0.04, 0.0])
+    np.testing.assert_allclose(out, [0.03, 0.04, 0.0, 0.0, 0.0, 0.04, 0.0], atol=1e-15)  # yaw 0.04 rad x 1 m -> y
+    out = inherited_sigma(ref_T_lidar, ref_T_cam, [np.inf, 0.0, 0.0, 0.0, 0.0, 0.0, 0.002])
+    assert np.isinf(out[0]) and np.all(np.isfinite(out[1:])) and out[6] == 0.002
 
 
 def test_trust_fields_round_trip(tmp_path):

@@ -5,7 +5,7 @@ compare fits of the same scans; the fitting itself stays in ``lidar_first``. No 
 
 from __future__ import annotations
 
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict, Optional, Sequence
 
 import numpy as np
 from jaxtyping import Float, Int
@@ -15,7 +15,8 @@ from moisst_ns.stages.lidar_geometry import Extrinsic
 from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS, Observability
 
 
-def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, observability: Observability) -> Dict[str, object]:
+def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, observability: Observability,
+                  expected: Sequence[int] = ()) -> Dict[str, object]:
     """Are the held parameters consistent with the scans? Compare the held fit with one that also frees them.
 
     A held parameter is inconsistent when freeing it moves it by more than three formal sigmas and a tenth of a typical
@@ -29,6 +30,8 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
         released: the fit from ``estimate`` with every parameter free.
         free: the indices (Jacobian order) the held fit estimated.
         observability: of the held fit (its formal sigma per parameter).
+        expected: held parameters (Jacobian order) expected to move when released: held because the data hardly
+            determine them (``LidarFirstConfig.hold_weak``), so their move is their sigma, not a disagreement.
 
     Returns:
         ``{"held": [...], "released_change": [7], "inconsistent": [...], "sigma_release": [7], "note"}`` in
@@ -39,8 +42,8 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
     is_free = np.isin(np.asarray(JACOBIAN_ORDER), free)
     sigma = np.array([d.sigma for d in observability.dofs])
     held = [p for p, f in zip(PARAMETERS, is_free) if not f]
-    inconsistent = [p for p, f, c, s, step in zip(PARAMETERS, is_free, change, sigma, TEST_STEPS)
-                    if not f and abs(c) > max(3.0 * s, 0.1 * step)]
+    inconsistent = [p for p, f, c, s, step, j in zip(PARAMETERS, is_free, change, sigma, TEST_STEPS, JACOBIAN_ORDER)
+                    if not f and abs(c) > max(3.0 * s, 0.1 * step) and j not in expected]
     moves = ", ".join(f"{p} {c * u:+.3g} {unit}" for p, c, (u, unit) in zip(PARAMETERS, change, UNITS) if p in inconsistent)
     note = f"held at its prior, {', '.join(inconsistent)} disagree with the scans (released, they move by {moves})" if inconsistent else ""
     return {"held": held, "released_change": change.tolist(), "inconsistent": inconsistent,

@@ -35,7 +35,7 @@ from moisst_ns.stages.lidar_checks import release_check, split_half_spread
 from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, Trajectory, place_points, placement_jacobian, trajectory_at
 from moisst_ns.stages.lidar_map import CameraStageError
 from moisst_ns.stages.lidar_view import SharedView, view_residuals
-from moisst_ns.stages.observability import PARAMETERS, UNITS, Observability, analyse_observability
+from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS, Observability, analyse_observability
 
 
 class LidarFirstError(ValueError):
@@ -105,19 +105,18 @@ class LidarFirstConfig:
     the 320x240 street rig beside 35 s for the stage). The formal sigma treats the correspondences as independent and
     misses what the drive does not determine: on a 6-scan drive (2 m, 2 deg of turn) the estimate was 24-48 cm off per
     axis with formal sigmas of 1-4 cm; the halves differed by metres."""
+    hold_split_half: float = 2.0
+    """Parameters whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms; the camera stage's
+    rule) are not determined by the drive: fitted again from the prior with them held there, their sigma is how far the
+    release fit moves them; 0 never holds. KITTI raw 0048, free: 134 cm / 5.3 deg off, the halves 44-145 cm apart."""
     shared_view: bool = False
     """Fit the scans' agreement with the reference camera's images too (``lidar_view``: a LiDAR depth edge must fall on
     an image edge of the reference frame nearest it in time, whose pose is known), jointly with their agreement with
-    each other. Motion alone cannot place a LiDAR on a straight drive (KITTI raw 0048: lever arm and roll weak, the
-    estimate 1.2-1.4 m off); one shared frame determines the lateral and vertical lever arm and the roll. Needs a
-    camera reference sensor. The edge distances enter the fit in units of the point-to-plane residuals' own scatter
-    (``SharedView.scale``): each kind weighted by its noise, so a drive whose motion determines a parameter keeps it
-    (exact synthetic scans scatter by 1 mm, an edge by pixels) and one whose motion does not gets it from the view.
-    Off by default until measured to help (docs/lidar-first.md, "The shared view")."""
+    each other, each kind in units of its own scatter (``SharedView.scale``). Needs a camera reference sensor. Off:
+    from the paper prior it did not place the Velodyne of KITTI raw 0048 (docs/lab/2026-11-25-kitti-shared-view.md)."""
 
 
-# ---------------------------------------------------------------------------------------------------------------
-# Scans
+# Scans ---------------------------------------------------------------------------------------------------------
 
 
 @dataclass
@@ -228,8 +227,7 @@ def scan_pairs(traj: Trajectory, scans: ScanSet, prior_offset: float, config: Li
     return pairs_arr, arc[pairs_arr[:, 1]] - arc[pairs_arr[:, 0]]
 
 
-# ---------------------------------------------------------------------------------------------------------------
-# Correspondences and the solve
+# Correspondences and the solve ---------------------------------------------------------------------------------
 
 
 @dataclass
@@ -424,10 +422,33 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     except CameraStageError as err:
         raise LidarFirstError(str(err)) from None
     ext, history = _fit(traj, scans, pairs, baselines, prior, prior, free, config, log, where, view)
-    corr = find_correspondences(traj, ext, scans, pairs, config.radius_end, config)
-    shared = view.at(traj, ext, scans, pairs, consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0]) if view is not None else None
-    residuals, jac = joint_residuals(traj, ext, scans, corr, shared, np.zeros(7), config)
-    observability = analyse_observability(jac, residuals, huber_weights(residuals, config.huber), traj, scans.stamps + ext.time_offset, ext.rotation)
+    fine = replace(config, radius_start=config.radius_end, start_baseline=float(baselines.max()) if len(baselines) else config.start_baseline)
+    held_apart: List[int] = []
+    while True:  # the fit, then (hold_split_half, every parameter estimated) again with what the halves disagree on held
+        corr = find_correspondences(traj, ext, scans, pairs, config.radius_end, config)
+        shared = view.at(traj, ext, scans, pairs, consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0]) if view is not None else None
+        residuals, jac = joint_residuals(traj, ext, scans, corr, shared, np.zeros(7), config)
+        observability = analyse_observability(jac, residuals, huber_weights(residuals, config.huber), traj, scans.stamps + ext.time_offset, ext.rotation)
+        split = None
+        if config.split_half:
+            def half(p: np.ndarray, b: np.ndarray, at: Extrinsic = ext, params: np.ndarray = free) -> Optional[Extrinsic]:
+                try:
+                    return _fit(traj, scans, p, b, at, prior, params, fine, lambda line: None, where, view)[0]
+                except LidarFirstError:  # the half's scans do not overlap
+                    return None
+
+            split = split_half_spread(half, pairs, baselines, len(scans.stamps)).tolist()
+            log(f"[lidar-first] {sensor}: " + ("the halves of the drive cannot be fitted apart (split-half sigma not measured)" if np.isnan(split).any() else
+                "halves of the drive apart by " + ", ".join(f"{p} {2 * v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, split, UNITS))))
+        apart = [] if split is None or config.hold_split_half <= 0 or len(free) + len(held_apart) < 7 else \
+            [JACOBIAN_ORDER[i] for i in range(7) if split[i] > config.hold_split_half * TEST_STEPS[i] and JACOBIAN_ORDER[i] in free]
+        if not apart or len(apart) == len(free):  # nothing (more) to hold, or nothing would be left to fit
+            break
+        log(f"[lidar-first] {sensor}: the halves of the drive disagree on {', '.join(PARAMETERS[JACOBIAN_ORDER.index(j)] for j in apart)}"
+            f" by more than {config.hold_split_half:g}x a typical prior error: fitted again from the prior with them held there")
+        held_apart, free = held_apart + apart, np.array([j for j in free if j not in apart])
+        ext, again = _fit(traj, scans, pairs, baselines, prior, prior, free, config, log, where, view)
+        history += again
     if shared is not None:  # weak now means that neither the motion nor the shared view determines it
         for dof in observability.dofs:
             if dof.weak:
@@ -435,22 +456,9 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     held = None
     if len(free) < 7 and config.release_check:
         released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where, view)
-        held = release_check(ext, released, free, observability)
+        held = release_check(ext, released, free, observability, expected=held_apart)
         if held["note"]:
             log(f"[lidar-first] {sensor}: {held['note']}")
-    split = None
-    if config.split_half:
-        fine = replace(config, radius_start=config.radius_end, start_baseline=float(baselines.max()) if len(baselines) else config.start_baseline)
-
-        def half(p: np.ndarray, b: np.ndarray) -> Optional[Extrinsic]:
-            try:
-                return _fit(traj, scans, p, b, ext, prior, free, fine, lambda line: None, where, view)[0]
-            except LidarFirstError:  # the half's scans do not overlap
-                return None
-
-        split = split_half_spread(half, pairs, baselines, len(scans.stamps)).tolist()
-        log(f"[lidar-first] {sensor}: " + ("the halves of the drive cannot be fitted apart (split-half sigma not measured)" if np.isnan(split).any() else
-            "halves of the drive apart by " + ", ".join(f"{p} {2 * v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, split, UNITS))))
     return LidarResult(sensor, prior, ext, history, observability, len(scans.stamps), scans.deskewed, scans.dropped,
                        time.perf_counter() - start, held, split)
 
