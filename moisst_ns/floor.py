@@ -24,8 +24,8 @@ from typing import Dict, List, Literal, Optional
 
 import numpy as np
 
-from moisst_ns.pipeline import (LIDAR_DEPTH_PER_M2, apply_scene_switches, fixed_calibration_scene, lidar_scene_settings, map_range_settings, rig_trainer_config,
-                               seed_everything)
+from moisst_ns.calibrate import apply_scene_switches, rig_trainer_config
+from moisst_ns.stage_run import LIDAR_DEPTH_PER_M2, fixed_calibration_scene, lidar_scene_settings, map_range_settings, seed_everything
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
 
@@ -254,20 +254,22 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
     """The NeRF floor: the scene trained at the truth, the calibration released at the truth against it."""
     import torch
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+    from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
     config = rig_trainer_config(cfg.method, cfg.scene_steps, rig.root, out, "scene", cfg.seed)
     config.vis = "tensorboard"
     model, datamanager = config.pipeline.model, config.pipeline.datamanager
+    config.pipeline = VanillaPipelineConfig(datamanager=datamanager, model=model)  # the scene alone: no stages, no calibration.json
     apply_scene_switches(model, cfg.depth_loss_per_m2, cfg.line_of_sight_mult, cfg.lidar_far_margin)
     if cfg.lidar_scene and any(s.type == "lidar" for s in rig.sensors.values()):
-        lidar_scene_settings(config, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
+        lidar_scene_settings(config.pipeline, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
     if cfg.map_range_mult > 0 and any(s.type == "lidar" for s in rig.sensors.values()):
         datamanager.dataparser.prior_calibration = rig.root / "ground_truth.json"  # the map and the frames at the truth
-        map_range_settings(config, cfg.map_range_mult, [n for n, s in rig.sensors.items() if s.type == "camera"])
+        map_range_settings(config.pipeline, cfg.map_range_mult, [n for n, s in rig.sensors.items() if s.type == "camera"])
     # The scene is built at the true calibration, so the phases that protect it from miscalibrated sensors
     # (reference-only warm-up, detached registration, coarse-to-fine) are switched off: the best scene of this budget.
     model.camera_optimizer.mode = "off"
-    fixed_calibration_scene(config)
+    fixed_calibration_scene(config.pipeline)
     config.save_config()
 
     seed_everything(cfg.seed)

@@ -1,14 +1,12 @@
 """``ns-train moisst`` (paper settings) and ``ns-train moisst-lite`` (2 CPU cores), plus the ``moisst-rig`` dataparser.
 
-Schedules are expressed as fractions of the run and turned into steps by ``moisst_trainer_config`` so that a
-shorter or longer run (``moisst-calibrate --max-num-iterations``) keeps the same shape; under ``ns-train ...
---max-num-iterations N`` the model rescales them at set-up (``moisst_ns.model.rescale_schedules``).
+Schedules are fractions of the run, built for the method's default length and rescaled to another
+(``schedules.rescale_schedules``): here for ``moisst-calibrate --max-num-iterations N``, by the model at set-up for
+``ns-train ... --max-num-iterations N``, with the same rounding. The pipeline is ``MoisstPipeline`` (the stages before
+the NeRF, calibration.json after it), trained by ``MoisstTrainer``.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
-from typing import Tuple
 
 import torch
 
@@ -16,31 +14,25 @@ from nerfstudio.configs.base_config import LoggingConfig, MachineConfig, ViewerC
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from moisst_ns.calibration_optimizer import CalibrationOptimizerConfig
 from moisst_ns.data.datamanager import MoisstDataManagerConfig
 from moisst_ns.data.dataparser import MoisstRigDataParserConfig
 from moisst_ns.model import MoisstModelConfig
+from moisst_ns.pipeline import MoisstPipelineConfig, MoisstTrainer
+from moisst_ns.schedules import rescale_schedules
 
 DEFAULT_ITERATIONS = {"moisst": 30000, "moisst-lite": 1500}
 
-
-@dataclass
-class CalibrationAdamConfig(AdamOptimizerConfig):
-    """Adam for the calibration parameters, with a shorter second-moment memory than torch's default."""
-
-    betas: Tuple[float, float] = (0.9, 0.999)
-    """Adam's (beta1, beta2). A smaller beta2 (0.99) forgets a gradient spike (e.g. when a loss switches on) in
-    ~100 steps instead of ~1000; measured on one rig it did not help, so torch's default is kept."""
+CalibrationAdamConfig = AdamOptimizerConfig
+"""Name kept for the config.yml of earlier runs (it only set torch's default betas)."""
 
 
-def _adam_decay(lr: float, steps: int, weight_decay: float = 0.0, final_factor: float = 1e-2, calibration: bool = False) -> dict:
+def _adam_decay(lr: float, steps: int, weight_decay: float = 0.0, final_factor: float = 1e-2) -> dict:
     """Adam with an exponential decay to ``final_factor`` of the initial rate over the run (paper IV)."""
-    config = CalibrationAdamConfig if calibration else AdamOptimizerConfig
     return {
-        "optimizer": config(lr=lr, eps=1e-15, weight_decay=weight_decay),
+        "optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15, weight_decay=weight_decay),
         "scheduler": ExponentialDecaySchedulerConfig(lr_final=lr * final_factor, max_steps=steps),
     }
 
@@ -55,17 +47,17 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
     """
     if method not in DEFAULT_ITERATIONS:
         raise ValueError(f"unknown method {method!r}; choose one of {sorted(DEFAULT_ITERATIONS)}")
-    steps = max_num_iterations or DEFAULT_ITERATIONS[method]
+    steps, default = max_num_iterations or DEFAULT_ITERATIONS[method], DEFAULT_ITERATIONS[method]
     lite = method == "moisst-lite"
     device = "cuda" if torch.cuda.is_available() else "cpu"
     model = MoisstModelConfig(
         eval_num_rays_per_chunk=1 << 12 if lite else 1 << 15,
         average_init_density=0.01,
         camera_optimizer=CalibrationOptimizerConfig(),
-        hash_weight_decay_steps=int(0.1 * steps),
-        depth_loss_start=int(0.04 * steps),
-        depth_loss_ramp_steps=int(0.05 * steps),
-        schedule_steps=steps,
+        hash_weight_decay_steps=int(0.1 * default),
+        depth_loss_start=int(0.04 * default),
+        depth_loss_ramp_steps=int(0.05 * default),
+        schedule_steps=default,
     )
     datamanager = MoisstDataManagerConfig(
         dataparser=MoisstRigDataParserConfig(),
@@ -88,13 +80,13 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
             {"hidden_dim": 16, "log2_hashmap_size": 15, "num_levels": 5, "max_res": 128, "use_linear": False},
             {"hidden_dim": 16, "log2_hashmap_size": 15, "num_levels": 5, "max_res": 256, "use_linear": False},
         ]
-        model.calibration_warmup_steps = int(0.2 * steps)
+        model.calibration_warmup_steps = int(0.2 * default)
         model.depth_loss_start = model.calibration_warmup_steps
-        model.registration_steps = int(0.7 * steps)
+        model.registration_steps = int(0.7 * default)
         datamanager.reference_only_steps = model.calibration_warmup_steps
         datamanager.registration_steps = model.registration_steps
         model.reference_only_warmup = True
-        model.coarse_to_fine = (int(0.2 * steps), int(0.7 * steps))
+        model.coarse_to_fine = (int(0.2 * default), int(0.7 * default))
     datamanager.lidar_start_step = model.depth_loss_start
     # Calibration rates (Adam moves a parameter at most ~lr per step): radians, metres, seconds.
     rot_lr, trans_lr, time_lr = (3e-3, 1e-2, 3e-3) if lite else (1e-3, 3e-3, 1e-3)
@@ -102,7 +94,8 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
     # the tiny test rig but made the 320x240 rig worse: 64 cm / 2.4 deg / 79 ms vs 80-89 cm / 1.3-1.6 deg / 56 ms
     # for the forward-right camera, so the paper's decay is kept.)
     calib_final = 1e-2
-    return TrainerConfig(
+    config = TrainerConfig(
+        _target=MoisstTrainer,
         method_name=method,
         steps_per_eval_batch=10**9 if lite else 500,
         steps_per_eval_image=10**9 if lite else 500,
@@ -114,21 +107,24 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         save_only_latest_checkpoint=True,
         machine=MachineConfig(device_type=device),
         logging=LoggingConfig(steps_per_log=25 if lite else 100),
-        pipeline=VanillaPipelineConfig(
+        pipeline=MoisstPipelineConfig(
             datamanager=datamanager,
             model=model,
         ),
         optimizers={
-            "proposal_networks": _adam_decay(1e-2, steps, weight_decay=1e-6),
-            "fields": _adam_decay(1e-2, steps, weight_decay=1e-6),
-            "hash_grids": _adam_decay(1e-2, steps, weight_decay=1e-6),
-            "calibration_rotation": _adam_decay(rot_lr, steps, final_factor=calib_final, calibration=True),
-            "calibration_translation": _adam_decay(trans_lr, steps, final_factor=calib_final, calibration=True),
-            "calibration_time": _adam_decay(time_lr, steps, final_factor=calib_final, calibration=True),
+            "proposal_networks": _adam_decay(1e-2, default, weight_decay=1e-6),
+            "fields": _adam_decay(1e-2, default, weight_decay=1e-6),
+            "hash_grids": _adam_decay(1e-2, default, weight_decay=1e-6),
+            "calibration_rotation": _adam_decay(rot_lr, default, final_factor=calib_final),
+            "calibration_translation": _adam_decay(trans_lr, default, final_factor=calib_final),
+            "calibration_time": _adam_decay(time_lr, default, final_factor=calib_final),
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 12 if lite else 1 << 15, websocket_host="127.0.0.1"),
         vis="viewer",
     )
+    if steps != default:  # the rounding of ``ns-train ... --max-num-iterations N`` (the model rescales so at set-up)
+        rescale_schedules(config, default, steps)
+    return config
 
 
 moisst_method = MethodSpecification(

@@ -324,6 +324,8 @@ class MoisstModel(NerfactoModel):
 
     def get_outputs(self, ray_bundle):
         self._guide_lidar_samples(ray_bundle)
+        if not self.training and not torch.is_inference_mode_enabled():
+            return self._with_normals(ray_bundle, super().get_outputs(ray_bundle))
         registering = self.training and self._step < self.config.registration_steps and self._reference_is_camera
         if not registering or self._detached_pass or self.camera_optimizer.rig is None:
             return super().get_outputs(ray_bundle)
@@ -352,6 +354,15 @@ class MoisstModel(NerfactoModel):
                 full[other_idx] = outputs_other[key].to(value)
                 merged[key] = full
         return merged
+
+    def _with_normals(self, ray_bundle, outputs: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """Render outputs plus ``normals`` in [0, 1] (what ``ns-export pointcloud`` exports by default): minus the
+        density's gradient at each ray's median depth, normalised (one more field query per ray)."""
+        with torch.enable_grad():
+            points = (ray_bundle.origins + ray_bundle.directions * outputs["depth"]).detach().requires_grad_(True)
+            gradient = torch.autograd.grad(self.field.density_fn(points).sum(), points)[0]
+        outputs["normals"] = (1.0 - torch.nn.functional.normalize(gradient, dim=-1)) / 2.0
+        return outputs
 
     # --- losses and metrics --------------------------------------------------------------------------------------
 

@@ -433,13 +433,14 @@ def uncertainty_lines(config_path: Path, estimate) -> List[str]:
 
 def run_verdicts(config_path: Path, rig, calib, renders: List[Dict[str, Any]]) -> Dict[str, Dict[str, Any]]:
     """Per-sensor verdicts of a run (``runs.verdict``): errors before (the dataset's priors) and after (the
-    checkpoint's estimate) when the dataset has ground truth, plus what moisst-calibrate left next to the run
-    (``OUT/summary.json``, ``OUT/calibration.json``, when the run folder is ``OUT/<method>/run``)."""
+    checkpoint's estimate) when the dataset has ground truth, plus the run's summary.json and calibration.json
+    (``runs.folder.outputs_dir``)."""
     from moisst_ns.rig.calibration import calibration_report_errors
     from moisst_ns.rig.format import Calibration, load_calibration
+    from moisst_ns.runs.folder import outputs_dir
     from moisst_ns.runs.verdict import sensor_verdicts
 
-    out = config_path.parent.parent.parent
+    out = outputs_dir(config_path)
     summary, calibration = {}, None
     for name in ("summary.json", "calibration.json"):
         try:

@@ -155,7 +155,11 @@ def test_summary_json_estimates_and_change_from_prior(run):
         if name == "cam_front":
             assert entry["change"]["rotation_deg"] == 0 and entry["change"]["translation_cm"] == 0
         elif name not in estimate.trust or "prior is kept" not in estimate.trust[name].reason:
-            assert entry["change"]["rotation_deg"] > 1e-4 and entry["change"]["translation_cm"] > 1e-3
+            held = set()  # the LiDAR-first stage holds what the halves of this 0.6 s drive disagree on at the prior
+            for record in run["config"].parents[2].rglob("lidar_first.json"):
+                held |= set((json.loads(record.read_text())["sensors"].get(name, {}).get("held_check") or {}).get("held", []))
+            assert entry["change"]["rotation_deg"] > 1e-4
+            assert entry["change"]["translation_cm"] > 1e-3 or {"x", "y", "z"} <= held, (name, held)
         else:
             assert entry["change"]["rotation_deg"] == 0 and entry["change"]["translation_cm"] == 0
         if name != "cam_front":

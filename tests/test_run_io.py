@@ -139,7 +139,7 @@ def test_resume_restores_calibration_and_optimiser_state(tmp_path):
             ckpt.unlink()
     saved = torch.load(ckpt_dir / "step-000000008.ckpt", map_location="cpu")  # also checks torch>=2.6 loading
     # set up the resumed trainer and check the state it starts from
-    from moisst_ns.pipeline import seed_everything
+    from moisst_ns.stage_run import seed_everything
 
     config = moisst_trainer_config("moisst-lite", 16)
     config.pipeline.datamanager.data = rig
@@ -156,8 +156,10 @@ def test_resume_restores_calibration_and_optimiser_state(tmp_path):
         assert torch.equal(getattr(rig_params, name).detach(), saved["pipeline"][key])
     state = trainer.optimizers.optimizers["calibration_translation"].state_dict()["state"][0]
     assert torch.equal(state["exp_avg_sq"], saved["optimizers"]["calibration_translation"]["state"][0]["exp_avg_sq"])
-    # and the resumed run ends close to the uninterrupted one
+    # and the resumed run ends close to the uninterrupted one, with the stages loaded from the run's folder, not run again
+    stages = tree_hash(part / "camera_registration")
     run_calibration(CalibrateConfig(dataset=rig, output_dir=part, max_num_iterations=16, seed=5, resume=True))
+    assert tree_hash(part / "camera_registration") == stages and trainer.pipeline.stage_run.cameras is not None
     a = load_calibration(full / "calibration.json")
     b = load_calibration(part / "calibration.json")
     for name in a.T_ref_sensor:
@@ -179,7 +181,7 @@ def test_time_offset_bound_is_reported(short_run, tmp_path, capsys):
 
 
 def test_scene_only_run_length_when_the_stages_hold_every_sensor():
-    from moisst_ns.pipeline import scene_only_steps
+    from moisst_ns.calibrate import scene_only_steps
 
     rig = Path("rig")
     assert scene_only_steps(CalibrateConfig(dataset=rig)) == 500

@@ -96,7 +96,7 @@ class NerfactoResult:
 def run_nerfacto(dataset: Path, out: Path, preset: Literal["moisst", "moisst-lite"], steps: int,
                  pose_optimizer: Literal["off", "SO3xR3"], rays: int | None = None, seed: int = 42) -> NerfactoResult:
     """Train nerfacto on a ``moisst-rig/1`` dataset and return its per-frame camera poses in metres."""
-    from moisst_ns.pipeline import seed_everything
+    from moisst_ns.stage_run import seed_everything
 
     config = nerfacto_trainer_config(preset, steps, pose_optimizer, rays)
     config.pipeline.datamanager.data = Path(dataset)

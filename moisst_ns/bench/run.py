@@ -112,7 +112,7 @@ def calibrate_case(rig: Path, out: Path, raw: dict, case: dict, steps: Optional[
     import torch
 
     from moisst_ns.bench.coverage import sensor_coverage
-    from moisst_ns.pipeline import CalibrateConfig, CalibrationError, run_calibration
+    from moisst_ns.calibrate import CalibrateConfig, CalibrationError, run_calibration
     from moisst_ns.runs.history import read_history
     from moisst_ns.rig.calibration import RigData, frame_pose_errors, frame_poses
     from moisst_ns.rig.format import Calibration, load_calibration, load_rig

@@ -61,13 +61,16 @@ def _trainer(kind: Literal["moisst", "nerfacto"], preset: str, rig: Path, out: P
     """A set-up nerfstudio trainer of the preset's full run; returns (trainer, steps of the run, set-up seconds)."""
     from moisst_ns.bench.baseline import nerfacto_trainer_config
     from moisst_ns.method_configs import DEFAULT_ITERATIONS
-    from moisst_ns.pipeline import CalibrateConfig, calibrate_trainer_config, seed_everything
+    from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+
+    from moisst_ns.calibrate import CalibrateConfig, calibrate_trainer_config, seed_everything
 
     steps = DEFAULT_ITERATIONS[preset]
     shutil.rmtree(out, ignore_errors=True)
     if kind == "moisst":
         cfg = CalibrateConfig(dataset=rig, output_dir=out, method=preset, lidar_rays=None if lidar else 0, report=False, seed=seed)
         config = calibrate_trainer_config(cfg, rig, out, steps)
+        config.pipeline = VanillaPipelineConfig(datamanager=config.pipeline.datamanager, model=config.pipeline.model)  # the NeRF's steps alone
     else:
         config = nerfacto_trainer_config(preset, steps, "off")
         config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = rig

@@ -1,7 +1,7 @@
 """``moisst-calibrate DATASET --output-dir OUT``: calibrate a rig and write ``OUT/calibration.json``.
 
-The pipeline (LiDAR first, then the NeRF) is ``moisst_ns.pipeline``; this module parses the command line and turns
-its errors into one line on stderr and exit status 2.
+The work is ``moisst_ns.calibrate.run_calibration`` (``MoisstPipeline``, the code path of ``ns-train moisst*``); this
+module parses the command line and turns its errors into one line on stderr and exit status 2.
 
 Exit status: 0 when every sensor's verdict (``calibration.json``) is ``converged`` or ``weakly observable``;
 ``NOT_CONVERGED_EXIT`` (3) when calibration.json was written but at least one sensor is ``not converged`` (still
@@ -16,8 +16,8 @@ from pathlib import Path
 import tyro
 
 from moisst_ns.cli.common import fail
-from moisst_ns.pipeline import CalibrateConfig, CalibrationError
-from moisst_ns.pipeline import run_calibration as _run_calibration
+from moisst_ns.calibrate import CalibrateConfig, CalibrationError
+from moisst_ns.calibrate import run_calibration as _run_calibration
 from moisst_ns.quiet import quiet_third_party
 from moisst_ns.rig.format import RigFormatError
 
@@ -27,7 +27,7 @@ NOT_CONVERGED_EXIT = 3
 
 
 def run_calibration(cfg: CalibrateConfig) -> Path:
-    """``moisst_ns.pipeline.run_calibration`` with its errors as ``moisst-calibrate: error: ...`` and exit 2."""
+    """``moisst_ns.calibrate.run_calibration`` with its errors as ``moisst-calibrate: error: ...`` and exit 2."""
     try:
         return _run_calibration(cfg)
     except (CalibrationError, RigFormatError) as err:

@@ -1,6 +1,6 @@
 """``moisst-fleet MANIFEST --output-dir OUT``: calibrate many drives on Ray, a consensus per vehicle, moved sensors.
 
-The work is ``moisst_ns.fleet.run.run_fleet`` (each drive: ``moisst_ns.pipeline.run_calibration`` in a Ray task);
+The work is ``moisst_ns.fleet.run.run_fleet`` (each drive: ``moisst_ns.calibrate.run_calibration`` in a Ray task);
 this module parses the command line and turns its errors into one line on stderr and exit status 2. Exit status 1
 when some drive failed (the others' results are written).
 """

@@ -66,7 +66,11 @@ class MoisstRigDataParser(DataParser):
     config: MoisstRigDataParserConfig
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        return self.rig_outputs(Path(self.config.data), split)
+        return self.rig_outputs(self.rig_folder(), split)
+
+    def rig_folder(self) -> Path:
+        """The ``moisst-rig/1`` folder read (``MoisstPipeline`` runs the calibration stages on it)."""
+        return Path(self.config.data)
 
     def rig_outputs(self, root: Path, split: str) -> DataparserOutputs:
         """Dataparser outputs of the ``moisst-rig/1`` dataset in ``root``."""

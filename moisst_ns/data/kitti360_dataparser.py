@@ -15,7 +15,6 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Literal, Optional, Tuple, Type
 
-from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
 from moisst_ns.data.dataparser import MoisstRigDataParser, MoisstRigDataParserConfig
@@ -72,13 +71,14 @@ class MoisstKitti360DataParser(MoisstRigDataParser):
 
     config: MoisstKitti360DataParserConfig
 
-    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+    def rig_folder(self) -> Path:
+        """The cached conversion (made on first use)."""
         conv = conversion_for(self.config)
         done = conv.out / ".moisst-kitti360-done"
         if not done.is_file():
             convert(conv)
             done.write_text("converted\n")
-        return self.rig_outputs(conv.out, split)
+        return conv.out
 
 
 moisst_kitti360_dataparser = DataParserSpecification(

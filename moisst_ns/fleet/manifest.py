@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Tuple
 
 from moisst_ns.fleet import FleetError
-from moisst_ns.pipeline import CalibrateConfig
+from moisst_ns.calibrate import CalibrateConfig
 
 FLEET_OWNED = ("dataset", "output_dir", "viewer", "viewer_host", "resume", "threads")
 """CalibrateConfig fields the fleet sets itself (the manifest may not): the dataset comes from ``dataset``, the

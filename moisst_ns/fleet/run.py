@@ -1,4 +1,4 @@
-"""Run a fleet: every drive is one Ray task running ``moisst_ns.pipeline.run_calibration`` (``moisst-calibrate``'s
+"""Run a fleet: every drive is one Ray task running ``moisst_ns.calibrate.run_calibration`` (``moisst-calibrate``'s
 code path) into ``OUT/<vehicle>/<drive>/``; then the per-vehicle consensus and the reports.
 
 Ray starts locally (``address="local"``, no dashboard, no usage statistics) unless ``--address`` names a cluster, where
@@ -89,7 +89,7 @@ def calibrate_drive(spec: Dict[str, Any]) -> Dict[str, Any]:
 
     import torch
 
-    from moisst_ns.pipeline import CalibrateConfig, CalibrationError, run_calibration
+    from moisst_ns.calibrate import CalibrateConfig, CalibrationError, run_calibration
     from moisst_ns.rig.format import RigFormatError, load_calibration
 
     out = Path(spec["out"])

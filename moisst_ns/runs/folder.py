@@ -299,9 +299,16 @@ def summary_markdown(summary: dict, only_trust: bool = False) -> str:
     return "\n".join(lines)
 
 
+def outputs_dir(config_path: Path) -> Path:
+    """Where a run's calibration.json and summary.json are: its own folder (``ns-train moisst*``), else ``OUT`` of
+    ``moisst-calibrate``'s ``OUT/<method>/run/config.yml``."""
+    run = Path(config_path).resolve().parent
+    return run if (run / "calibration.json").is_file() else run.parent.parent
+
+
 def run_trust(config_path: Path, estimate: Calibration, tolerance: float = 1e-6) -> Calibration:
-    """The estimate with the trust fields ``moisst-calibrate`` wrote for this run (``OUT/calibration.json``, three
-    folders above ``OUT/<method>/run/config.yml``), and the priors it kept for sensors no better than them.
+    """The estimate with the trust fields the run wrote (``outputs_dir``'s calibration.json), and the priors it kept
+    for sensors no better than them.
 
     The file is used only when every sensor it did not revert agrees with the checkpoint's estimate (same run, same
     step); otherwise (a run trained further, or none) the estimate comes back unchanged.
@@ -316,7 +323,7 @@ def run_trust(config_path: Path, estimate: Calibration, tolerance: float = 1e-6)
     """
     from moisst_ns.rig.format import RigFormatError, load_calibration
 
-    file = Path(config_path).resolve().parent.parent.parent / "calibration.json"
+    file = outputs_dir(config_path) / "calibration.json"
     try:
         written = load_calibration(file) if file.is_file() else None
     except RigFormatError:
