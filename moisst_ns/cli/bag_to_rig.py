@@ -3,19 +3,13 @@
 
 from __future__ import annotations
 
-import sys
-
 from moisst_ns.cli.common import run_converter
 from moisst_ns.datasets.rosbag import BagConfig, convert
 
 
-def _convert(config: BagConfig):
-    return convert(config, log=lambda line: print(f"moisst-bag-to-rig: {line}", file=sys.stderr))
-
-
 def main() -> None:
     """Console script ``moisst-bag-to-rig``."""
-    run_converter("moisst-bag-to-rig", BagConfig, _convert, "source")
+    run_converter("moisst-bag-to-rig", BagConfig, convert, "source", log=True)
 
 
 if __name__ == "__main__":

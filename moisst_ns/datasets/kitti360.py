@@ -35,31 +35,11 @@ from typing import Annotated, Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 import tyro
 
-from moisst_ns.datasets.kitti360_io import (
-    PERSPECTIVE,
-    REFERENCE,
-    Perspective,
-    Kitti360Error,
-    MeiCamera,
-    _inv,
-    _prepare_out,
-    _require,
-    _rot4,
-    _scaled_intrinsics,
-    _write_rig,
-    _write_trajectory,
-    format_timestamp,
-    read_cam_to_pose,
-    read_cam_to_velo,
-    read_indexed_poses,
-    read_mei_yaml,
-    read_perspective,
-    read_timestamps,
-)
-
-CAMERAS = ("image_00", "image_01", "image_02", "image_03")
-FISHEYE = ("image_02", "image_03")
-VELODYNE = "velodyne"
+from moisst_ns.datasets.kitti360_io import (CAMERAS, PERSPECTIVE, REFERENCE, SUFFIX, VELODYNE, Kitti360Error, MeiCamera, Perspective,
+                                             _cameras, _inv, _Layout, _perturbed, _require, _rot4, _write_image, format_timestamp,
+                                             read_cam_to_pose, read_cam_to_velo, read_indexed_poses, read_mei_yaml,
+                                             read_perspective, read_timestamps)
+from moisst_ns.datasets.rig_writer import prepare_out, scaled_intrinsics, write_rig, write_trajectory
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -67,7 +47,7 @@ VELODYNE = "velodyne"
 
 
 @dataclass
-class Kitti360Paths:
+class Kitti360Paths(_Layout):
     """Where a sequence's files are in the KITTI-360 download layout."""
 
     root: Path
@@ -86,12 +66,6 @@ class Kitti360Paths:
         if sensor == VELODYNE:
             return self.sensor_dir(sensor) / "data"
         return self.sensor_dir(sensor) / ("data_rect" if sensor in PERSPECTIVE else "data_rgb")
-
-    def frame_file(self, sensor: str, index: int) -> Path:
-        return self.data_dir(sensor) / (f"{index:010d}" + (".bin" if sensor == VELODYNE else ".png"))
-
-    def timestamps(self, sensor: str) -> Path:
-        return self.sensor_dir(sensor) / "timestamps.txt"
 
     @property
     def poses(self) -> Path:
@@ -217,14 +191,9 @@ def _frame_range(config: Kitti360Config) -> List[int]:
 
 
 def _check_config(config: Kitti360Config) -> Tuple[List[str], List[int]]:
-    unknown = [c for c in config.cameras if c not in CAMERAS]
-    if unknown:
-        raise Kitti360Error("(command line)", "--cameras", f"unknown camera {unknown[0]!r}; KITTI-360 has {', '.join(CAMERAS)}")
-    if config.downscale < 1:
-        raise Kitti360Error("(command line)", "--downscale", f"must be >= 1, got {config.downscale}")
+    cameras = _cameras(config, CAMERAS, "KITTI-360")
     if not 10.0 <= config.fisheye_fov < 170.0:
         raise Kitti360Error("(command line)", "--fisheye-fov", f"must be in [10, 170) degrees, got {config.fisheye_fov}")
-    cameras = [REFERENCE] + [c for c in CAMERAS if c in config.cameras and c != REFERENCE]
     return cameras, _frame_range(config)
 
 
@@ -235,7 +204,7 @@ def sensor_stamps(paths: Kitti360Paths, sensor: str, frames: Sequence[int]) -> n
     stamps_file = paths.timestamps(sensor)
     stamps = read_timestamps(stamps_file)
     data = _require(paths.data_dir(sensor), "data folder")
-    suffix = ".bin" if sensor == VELODYNE else ".png"
+    suffix = SUFFIX.get(sensor, ".png")
     on_disk = sum(1 for p in data.iterdir() if p.suffix == suffix)
     if on_disk > len(stamps):
         raise Kitti360Error(stamps_file, "frame count",
@@ -281,8 +250,6 @@ def convert(config: Kitti360Config) -> Path:
     axes, Velodyne scans copied as KITTI ``.bin``. ``ground_truth.json`` holds the dataset's own calibration
     (offsets 0); ``rig.json`` holds it perturbed per ``--perturb``.
     """
-    import cv2
-
     cameras, frames = _check_config(config)
     paths = Kitti360Paths(Path(config.root), config.sequence)
     _require(paths.root, "KITTI-360 root")
@@ -295,19 +262,20 @@ def convert(config: Kitti360Config) -> Path:
     if pose_idx[-1] >= len(ref_all):
         raise Kitti360Error(pose_source, "frame index",
                             f"pose of frame {int(pose_idx[-1])} but {paths.timestamps(REFERENCE)} has {len(ref_all)} timestamps")
-    out = _prepare_out(config)
+    out = prepare_out(Path(config.out), [config.root], config.overwrite, Kitti360Error,
+                      "must not be inside the KITTI-360 folder (nothing is written into the dataset)")
 
-    _write_trajectory(out / "reference_poses.txt", (ref_all[pose_idx] - origin) * 1e-9, poses,
-                      header=f"world_T_image_00 (rectified) from {pose_source.name} of {config.sequence}: timestamp tx ty tz qx qy qz qw")
+    write_trajectory(out / "reference_poses.txt", (ref_all[pose_idx] - origin) * 1e-9, poses,
+                     header=f"world_T_image_00 (rectified) from {pose_source.name} of {config.sequence}: timestamp tx ty tz qx qy qz qw")
 
     factor = config.downscale
     fish_K = pinhole_for_fisheye(config.fisheye_fov, config.fisheye_size)
     intr: Dict[str, Dict[str, object]] = {}
     for cam in cameras:
         if cam in PERSPECTIVE:
-            intr[cam] = _scaled_intrinsics(calib.perspective[cam].K, calib.perspective[cam].size, factor)
+            intr[cam] = scaled_intrinsics(calib.perspective[cam].K, calib.perspective[cam].size, factor)
         else:
-            intr[cam] = _scaled_intrinsics(fish_K, config.fisheye_size, factor)
+            intr[cam] = scaled_intrinsics(fish_K, config.fisheye_size, factor)
     maps = {cam: rectify_map(calib.fisheye[cam], fish_K, config.fisheye_size) for cam in calib.fisheye}
 
     rig_frames = []
@@ -319,28 +287,14 @@ def convert(config: Kitti360Config) -> Path:
             rel = f"{folder}/{src.name}"
             if sensor == VELODYNE:
                 shutil.copyfile(src, out / rel)
+            elif sensor in calib.fisheye:
+                mei = calib.fisheye[sensor]
+                _write_image(src, out / rel, (mei.width, mei.height), factor, False, f"{sensor}.yaml", maps[sensor])
             else:
-                image = cv2.imread(str(src), cv2.IMREAD_COLOR)
-                if image is None:
-                    raise Kitti360Error(src, "image", "unreadable image")
-                if sensor in calib.fisheye:
-                    mei = calib.fisheye[sensor]
-                    if image.shape[:2] != (mei.height, mei.width):
-                        raise Kitti360Error(src, "image", f"is {image.shape[1]}x{image.shape[0]}, {sensor}.yaml says {mei.width}x{mei.height}")
-                    image = cv2.remap(image, *maps[sensor], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-                else:
-                    w, h = calib.perspective[sensor].size
-                    if image.shape[:2] != (h, w):
-                        raise Kitti360Error(src, "image", f"is {image.shape[1]}x{image.shape[0]}, perspective.txt S_rect says {w}x{h}")
-                if factor > 1:
-                    image = cv2.resize(image, (intr[sensor]["w"], intr[sensor]["h"]), interpolation=cv2.INTER_AREA)
-                if factor == 1 and sensor not in calib.fisheye:
-                    shutil.copyfile(src, out / rel)
-                else:
-                    cv2.imwrite(str(out / rel), image)
+                _write_image(src, out / rel, calib.perspective[sensor].size, factor, factor == 1, "perspective.txt S_rect")
             rig_frames.append({"sensor": sensor, "timestamp": round((int(stamp) - origin) * 1e-9, 9), "file_path": rel})
-    _write_rig(out, config, calib.T_ref, sensors, [VELODYNE], intr, rig_frames, generator="moisst-kitti360-to-rig",
-               time_origin=format_timestamp(origin), trajectory_source=pose_source.name,
-               note="fisheye cameras rectified to pinhole images with the fisheye's own axes; ground_truth.json is the "
-                    "dataset's calibration (its LiDAR calibration is itself good to a few cm only)")
+    write_rig(out, REFERENCE, sensors, [VELODYNE], intr, rig_frames, _perturbed(config, calib.T_ref), dict(
+        generator="moisst-kitti360-to-rig", time_origin=format_timestamp(origin), trajectory_source=pose_source.name,
+        note="fisheye cameras rectified to pinhole images with the fisheye's own axes; ground_truth.json is the "
+             "dataset's calibration (its LiDAR calibration is itself good to a few cm only)"), calib.T_ref, config)
     return out

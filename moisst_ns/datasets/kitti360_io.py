@@ -1,24 +1,30 @@
 """Readers of KITTI-360's download layout (calibration text files, MEI fisheye YAML, poses, timestamps), each
-failing with a one-line ``Kitti360Error`` naming the file and the key, and the output steps both KITTI converters
-share (output folder, priors, intrinsics, trajectory, rig.json). Used by ``moisst_ns.datasets.kitti360`` and
-``moisst_ns.datasets.kitti_raw`` (KITTI raw uses the same calibration key files and timestamps)."""
+failing with a one-line ``Kitti360Error`` naming the file and the key, and the steps both KITTI converters share
+(cameras, priors, images; the rest in ``moisst_ns.datasets.rig_writer``). Used by ``moisst_ns.datasets.kitti360``
+and ``moisst_ns.datasets.kitti_raw`` (KITTI raw uses the same calibration key files and timestamps)."""
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, dataclass
+import shutil
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from moisst_ns.datasets.output import clear_generated_dataset
-from moisst_ns.rig.format import Calibration, RigFormatError, rig_json, write_tum
+from moisst_ns.datasets.rig_writer import shrink
+from moisst_ns.rig.format import RigFormatError
 
+CAMERAS = ("image_00", "image_01", "image_02", "image_03")
+"""The cameras of both datasets: KITTI raw's rectified 00/01 grey and 02/03 colour; KITTI-360's 00/01 perspective and
+02/03 fisheye."""
 PERSPECTIVE = ("image_00", "image_01")
 """The rectified perspective cameras (KITTI-360; in KITTI raw all four cameras are)."""
 REFERENCE = "image_00"
-"""The reference sensor of both converters: the rectified left grey camera."""
+"""The reference sensor of both KITTI converters: the rectified left grey camera."""
+VELODYNE = "velodyne"
+SUFFIX = {VELODYNE: ".bin", "oxts": ".txt"}
+"""Frame file suffix of a sensor in both KITTI layouts (cameras: ``.png``)."""
 
 
 class Kitti360Error(RigFormatError):
@@ -42,6 +48,17 @@ def _rot4(rotation: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = rotation
     return out
+
+
+class _Layout:
+    """Frame files ``NNNNNNNNNN<SUFFIX>`` and ``timestamps*.txt`` of a KITTI layout's ``data_dir`` / ``sensor_dir``."""
+
+    def frame_file(self, sensor: str, index: int) -> Path:
+        return self.data_dir(sensor) / f"{index:010d}{SUFFIX.get(sensor, '.png')}"
+
+    def timestamps(self, sensor: str, which: str = "") -> Path:
+        """``timestamps.txt``, or ``timestamps_start.txt`` / ``timestamps_end.txt`` (``which``) of the Velodyne."""
+        return self.sensor_dir(sensor) / (f"timestamps_{which}.txt" if which else "timestamps.txt")
 
 
 def _check_rotation(rotation: np.ndarray, file: Path, key: str, tol: float = 1e-4) -> None:
@@ -322,7 +339,17 @@ def format_timestamp(ns: int) -> str:
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Output steps shared by the converters (their configs have out, root, overwrite, perturb, seed, perturb_*)
+# Steps shared by the KITTI converters (their configs have cameras, downscale, perturb, seed, perturb_*)
+
+
+def _cameras(config, cameras: Sequence[str], dataset: str) -> List[str]:
+    """The reference and ``config.cameras`` in ``cameras`` order, after checking them and ``config.downscale``."""
+    unknown = [c for c in config.cameras if c not in cameras]
+    if unknown:
+        raise Kitti360Error("(command line)", "--cameras", f"unknown camera {unknown[0]!r}; {dataset} has {', '.join(cameras)}")
+    if config.downscale < 1:
+        raise Kitti360Error("(command line)", "--downscale", f"must be >= 1, got {config.downscale}")
+    return [REFERENCE] + [c for c in cameras if c in config.cameras and c != REFERENCE]
 
 
 def _perturbed(config, T_ref: Dict[str, np.ndarray]) -> Dict[str, Tuple[np.ndarray, float]]:
@@ -340,47 +367,19 @@ def _perturbed(config, T_ref: Dict[str, np.ndarray]) -> Dict[str, Tuple[np.ndarr
     return priors
 
 
-def _prepare_out(config, dataset: str = "KITTI-360") -> Path:
-    out = Path(config.out)
-    root = Path(config.root).resolve()
-    if out.resolve() == root or root in out.resolve().parents:
-        raise Kitti360Error(out, "--out", f"must not be inside the {dataset} folder (nothing is written into the dataset)")
-    if out.exists() and not out.is_dir():
-        raise Kitti360Error(out, "--out", "exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()):
-        if not config.overwrite:
-            raise Kitti360Error(out, "--out", "exists and is not empty; pass --overwrite to replace its dataset")
-        clear_generated_dataset(out)
-    out.mkdir(parents=True, exist_ok=True)
-    return out
+def _write_image(src: Path, dst: Path, size: Tuple[int, int], factor: int, copy: bool, says: str, remap=None) -> None:
+    """Copy the image ``src`` to ``dst`` (``copy``), or write it as a 3-channel PNG, rectified by the ``cv2.remap`` maps
+    ``remap`` and shrunk by ``factor``; it must be ``size`` (w, h) pixels, as the file ``says`` says."""
+    import cv2
 
-
-def _scaled_intrinsics(K: np.ndarray, size: Tuple[int, int], factor: int) -> Dict[str, object]:
-    """moisst-rig PINHOLE intrinsics (pixel centres at +0.5) of a KITTI K after shrinking by ``factor``."""
-    w, h = size
-    return {"camera_model": "PINHOLE", "w": w // factor, "h": h // factor, "fl_x": float(K[0, 0]) / factor,
-            "fl_y": float(K[1, 1]) / factor, "cx": (float(K[0, 2]) + 0.5) / factor, "cy": (float(K[1, 2]) + 0.5) / factor}
-
-
-def _write_trajectory(path: Path, stamps_s: np.ndarray, poses: np.ndarray, header: str) -> None:
-    """TUM file of ``poses`` (K, 4, 4) at ``stamps_s`` (quaternions with ``qw >= 0``)."""
-    import roma
-    import torch
-
-    quats = roma.rotmat_to_unitquat(torch.from_numpy(np.ascontiguousarray(poses[:, :3, :3]))).numpy()
-    quats = quats * np.where(quats[:, 3:4] < 0, -1.0, 1.0)
-    write_tum(path, stamps_s, poses[:, :3, 3], quats, header=header)
-
-
-def _write_rig(out: Path, config, T_ref: Dict[str, np.ndarray], sensors: Sequence[str], lidars: Sequence[str],
-               intrinsics: Dict[str, Dict[str, object]], frames: List[dict], **metadata) -> None:
-    """``rig.json`` (priors per ``config.perturb``; metadata: the config and ``metadata``) and ``ground_truth.json``
-    (``T_ref``, offsets 0) of ``sensors`` into ``out``; ``frames`` are sorted by time first."""
-    frames.sort(key=lambda f: (f["timestamp"], f["sensor"]))
-    priors = _perturbed(config, T_ref)
-    rig_sensors = {s: ("lidar" if s in lidars else "camera", priors[s][0], priors[s][1], intrinsics.get(s, {})) for s in sensors}
-    meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")}
-    meta.update(metadata)
-    rig = rig_json(REFERENCE, "reference_poses.txt", rig_sensors, frames, meta)
-    (out / "rig.json").write_text(json.dumps(rig, indent=1) + "\n")
-    Calibration(REFERENCE, {s: T_ref[s] for s in sensors}, {s: 0.0 for s in sensors}).write(out / "ground_truth.json")
+    image = cv2.imread(str(src), cv2.IMREAD_COLOR)  # grey images become 3 identical channels
+    if image is None:
+        raise Kitti360Error(src, "image", "unreadable image")
+    if image.shape[1::-1] != tuple(size):
+        raise Kitti360Error(src, "image", f"is {image.shape[1]}x{image.shape[0]}, {says} says {size[0]}x{size[1]}")
+    if copy:
+        shutil.copyfile(src, dst)
+        return
+    if remap is not None:
+        image = cv2.remap(image, *remap, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    cv2.imwrite(str(dst), shrink(image, factor))

@@ -1,6 +1,5 @@
 """KITTI raw (a synced + rectified drive), read from its download layout, converted to ``moisst-rig/1``
-(``moisst-kitti-raw-to-rig``). numpy / OpenCV / SciPy (and roma for the quaternions); no nerfstudio. See
-``docs/kitti-raw.md``.
+(``moisst-kitti-raw-to-rig``). numpy / OpenCV / SciPy; no nerfstudio. See ``docs/kitti-raw.md``.
 
 Frames and conventions (KITTI raw devkit ``readme.txt`` and ``convertOxtsToPose.m``, as pykitti reads them):
 
@@ -30,7 +29,6 @@ the data), a sweep lasts ``timestamps_end - timestamps_start`` (~103 ms) centred
 
 from __future__ import annotations
 
-import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Dict, List, Literal, Optional, Sequence, Tuple
@@ -39,29 +37,12 @@ import numpy as np
 import tyro
 
 from moisst_ns.datasets.kitti360 import sensor_stamps
-from moisst_ns.datasets.kitti360_io import (
-    REFERENCE,
-    Kitti360Error,
-    Perspective,
-    _check_rotation,
-    _inv,
-    _prepare_out,
-    _require,
-    _rot4,
-    _scaled_intrinsics,
-    _values,
-    _write_rig,
-    _write_trajectory,
-    format_timestamp,
-    read_key_values,
-    read_perspective,
-    read_timestamps,
-)
+from moisst_ns.datasets.kitti360_io import (CAMERAS, REFERENCE, VELODYNE, Kitti360Error, Perspective, _cameras, _check_rotation, _inv,
+                                             _Layout, _perturbed, _require, _rot4, _values, _write_image, format_timestamp,
+                                             read_key_values, read_perspective, read_timestamps)
+from moisst_ns.datasets.rig_writer import prepare_out, scaled_intrinsics, write_rig, write_trajectory
 
-CAMERAS = ("image_00", "image_01", "image_02", "image_03")
-"""Rectified cameras: 00/01 grey, 02/03 colour."""
 COLOUR = ("image_02", "image_03")
-VELODYNE = "velodyne"
 EARTH_RADIUS = 6378137.0
 """Metres, as the devkit's ``convertOxtsToPose``."""
 OXTS_VALUES = 30
@@ -78,7 +59,7 @@ as KITTI-360's, since the readers and output steps are shared)."""
 
 
 @dataclass
-class KittiRawPaths:
+class KittiRawPaths(_Layout):
     """Where a drive's files are: ``ROOT/DATE/DATE_drive_XXXX_sync`` and ``ROOT/DATE/calib_*.txt`` (pykitti), or
     ``ROOT/DRIVE/DATE/DRIVE`` and ``ROOT/DATE_calib/DATE/calib_*.txt`` (each KITTI zip unpacked into its own folder)."""
 
@@ -105,14 +86,6 @@ class KittiRawPaths:
 
     def data_dir(self, sensor: str) -> Path:
         return self.sensor_dir(sensor) / "data"
-
-    def frame_file(self, sensor: str, index: int) -> Path:
-        suffix = {VELODYNE: ".bin", "oxts": ".txt"}.get(sensor, ".png")
-        return self.data_dir(sensor) / f"{index:010d}{suffix}"
-
-    def timestamps(self, sensor: str, which: str = "") -> Path:
-        """``timestamps.txt``, or ``timestamps_start.txt`` / ``timestamps_end.txt`` (``which``) of the Velodyne."""
-        return self.sensor_dir(sensor) / (f"timestamps_{which}.txt" if which else "timestamps.txt")
 
 
 def read_rt(path: Path) -> np.ndarray:
@@ -254,14 +227,10 @@ class KittiRawConfig:
 
 
 def _check_config(config: KittiRawConfig) -> List[str]:
-    unknown = [c for c in config.cameras if c not in CAMERAS]
-    if unknown:
-        raise KittiRawError("(command line)", "--cameras", f"unknown camera {unknown[0]!r}; KITTI raw has {', '.join(CAMERAS)}")
-    if config.downscale < 1:
-        raise KittiRawError("(command line)", "--downscale", f"must be >= 1, got {config.downscale}")
+    cameras = _cameras(config, CAMERAS, "KITTI raw")
     if config.points_per_scan < 0:
         raise KittiRawError("(command line)", "--points-per-scan", f"must be >= 0, got {config.points_per_scan}")
-    return [REFERENCE] + [c for c in CAMERAS if c in config.cameras and c != REFERENCE]
+    return cameras
 
 
 def _frame_range(config: KittiRawConfig, count: int, stamps_file: Path) -> List[int]:
@@ -284,22 +253,6 @@ def sweep_durations(paths: KittiRawPaths, frames: Sequence[int]) -> np.ndarray:
         bad = frames[int(np.argmax((sweep <= 0.0) | (sweep > 1.0)))]
         raise KittiRawError(paths.timestamps(VELODYNE, "end"), f"line {bad + 1}", "sweep end not within 1 s after its start")
     return sweep
-
-
-def _write_image(src: Path, dst: Path, size: Tuple[int, int], factor: int, copy: bool) -> None:
-    import cv2
-
-    image = cv2.imread(str(src), cv2.IMREAD_COLOR)  # grey images become 3 identical channels
-    if image is None:
-        raise KittiRawError(src, "image", "unreadable image")
-    if image.shape[1::-1] != tuple(size):
-        raise KittiRawError(src, "image", f"is {image.shape[1]}x{image.shape[0]}, calib_cam_to_cam.txt S_rect says {size[0]}x{size[1]}")
-    if copy:
-        shutil.copyfile(src, dst)
-        return
-    if factor > 1:
-        image = cv2.resize(image, (size[0] // factor, size[1] // factor), interpolation=cv2.INTER_AREA)
-    cv2.imwrite(str(dst), image)
 
 
 def _write_scan(src: Path, dst: Path, sweep_s: float, keep: int, rng: np.random.Generator) -> None:
@@ -332,13 +285,14 @@ checked before anything is written (an unreadable or wrong-sized image or scan s
         stamps.update({cam: trigger for cam in cameras})
     sweeps = sweep_durations(paths, frames) if config.lidar else None
     oxts_stamps, packets = read_oxts(paths)
-    out = _prepare_out(config, "KITTI raw")
+    out = prepare_out(Path(config.out), [config.root], config.overwrite, KittiRawError,
+                      "must not be inside the KITTI raw folder (nothing is written into the dataset)")
 
     origin = int(ref_all[0])
-    _write_trajectory(out / "reference_poses.txt", (oxts_stamps - origin) * 1e-9, oxts_poses(packets) @ _inv(calib.ref_T_imu),
-                      header=f"world_T_image_00 (rectified) from the OXTS of {config.drive}: timestamp tx ty tz qx qy qz qw")
+    write_trajectory(out / "reference_poses.txt", (oxts_stamps - origin) * 1e-9, oxts_poses(packets) @ _inv(calib.ref_T_imu),
+                     header=f"world_T_image_00 (rectified) from the OXTS of {config.drive}: timestamp tx ty tz qx qy qz qw")
     factor = config.downscale
-    intr = {cam: _scaled_intrinsics(calib.perspective[cam].K, calib.perspective[cam].size, factor) for cam in cameras}
+    intr = {cam: scaled_intrinsics(calib.perspective[cam].K, calib.perspective[cam].size, factor) for cam in cameras}
     rig_frames = []
     for sensor in sensors:
         kind = "lidar" if sensor == VELODYNE else "images"
@@ -350,15 +304,17 @@ checked before anything is written (an unreadable or wrong-sized image or scan s
                 _write_scan(src, out / rel, float(sweeps[i]), config.points_per_scan, np.random.default_rng((config.seed, index)))
             else:
                 rel = f"{kind}/{sensor}/{src.name}"
-                _write_image(src, out / rel, calib.perspective[sensor].size, factor, copy=factor == 1 and sensor in COLOUR)
+                _write_image(src, out / rel, calib.perspective[sensor].size, factor, factor == 1 and sensor in COLOUR,
+                             "calib_cam_to_cam.txt S_rect")
             rig_frames.append({"sensor": sensor, "timestamp": round((int(stamp) - origin) * 1e-9, 9), "file_path": rel})
 
     priors_config = replace(config, perturb_rotation=10.0) if config.perturb == "rot10" else config
-    _write_rig(out, priors_config, {s: calib.T_ref[s] for s in sensors}, sensors, [VELODYNE], intr, rig_frames,
-               generator="moisst-kitti-raw-to-rig", time_origin=format_timestamp(origin), layout=paths.layout,
-               trajectory_source="oxts (every sample, its own timestamps)",
-               camera_stamps="velodyne_points/timestamps.txt (camera trigger)" if config.stamps == "trigger"
-               else "each camera's timestamps.txt (recorded)",
-               velodyne_times="clockwise sweep: times = -atan2(y, x) / (2 pi) * (timestamps_end - timestamps_start)",
-               note="ground_truth.json is the factory calibration (good to a few cm) with offsets 0")
+    truth = {s: calib.T_ref[s] for s in sensors}
+    write_rig(out, REFERENCE, sensors, [VELODYNE], intr, rig_frames, _perturbed(priors_config, truth), dict(
+        generator="moisst-kitti-raw-to-rig", time_origin=format_timestamp(origin), layout=paths.layout,
+        trajectory_source="oxts (every sample, its own timestamps)",
+        camera_stamps="velodyne_points/timestamps.txt (camera trigger)" if config.stamps == "trigger"
+        else "each camera's timestamps.txt (recorded)",
+        velodyne_times="clockwise sweep: times = -atan2(y, x) / (2 pi) * (timestamps_end - timestamps_start)",
+        note="ground_truth.json is the factory calibration (good to a few cm) with offsets 0"), truth, priors_config)
     return out

@@ -15,28 +15,27 @@ z forward, as moisst-rig's cameras); priors ``T_ref_sensor`` = ``ref_frame <- se
 
 from __future__ import annotations
 
-import json
 import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Annotated, Callable, Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 import tyro
 
-from moisst_ns.datasets.kitti360_io import _prepare_out, _write_trajectory
+from moisst_ns.datasets.rig_writer import prepare_out, write_rig, write_trajectory
 from moisst_ns.datasets.rosbag_msgs import (CAMERA_INFO, CLOUD, COMPRESSED, IMAGE, POSES, TF, BagError, MessageError,
                                             StaticTf, camera_intrinsics, cloud_arrays, frame_name, poses_of, rigid,
                                             stamp_ns, write_image)
-from moisst_ns.rig.format import check_name, load_calibration, load_rig, rig_json
+from moisst_ns.rig.format import check_name, load_calibration, load_rig
 
 GENERIC_PARTS = {"image_raw", "image_color", "image_rect", "image_rect_color", "image_mono", "image", "compressed",
                  "points", "points_raw", "pointcloud", "cloud"}
 """Topic components left out of a default sensor name (``/cam_front/image_raw`` -> ``cam_front``)."""
 TRAJECTORY_PAD_S = 1.0
 """Poses are read this much beyond the time window on both sides (frames at its edges interpolate)."""
+INSIDE = "must not be inside the bag {source} (the bag is only read)"
 
 
 @dataclass
@@ -86,11 +85,6 @@ class BagConfig:
     before the first kept frame (rig timestamps keep every nanosecond); 0 keeps absolute stamps (float64: ~0.2 us)."""
     overwrite: bool = False
     """Replace the converter's outputs in a non-empty --out."""
-
-    @property
-    def perturb(self) -> str:
-        """Priors are never perturbed here (the converters' summary line reports it)."""
-        return "none"
 
     @property
     def source(self) -> str:
@@ -160,14 +154,7 @@ def _check_config(config: BagConfig) -> None:
             raise BagError(bag, "(bag)", "not found")
     if len({b.suffix == ".bag" for b in config.bags}) > 1:
         raise BagError(_label(config.bags), "(bag)", "mixes ROS 1 .bag files and ROS 2 bags; convert one kind at a time")
-    out = config.out.absolute().resolve()
-    for bag in config.bags:
-        if bag.resolve() == out or bag.resolve() in out.parents:
-            raise BagError(config.out, "--out", f"must not be inside the bag {bag} (the bag is only read)")
-    if config.out.exists() and not config.out.is_dir():
-        raise BagError(config.out, "--out", "exists and is not a folder")
-    if config.out.is_dir() and any(config.out.iterdir()) and not config.overwrite:
-        raise BagError(config.out, "--out", "exists and is not empty; pass --overwrite to replace its dataset")
+    prepare_out(config.out, config.bags, config.overwrite, BagError, INSIDE, clear=False)
 
 
 def _topic(reader, bags, topic: str, wanted: Tuple[str, ...], what: str) -> list:
@@ -350,12 +337,11 @@ def _convert(config: BagConfig, reader, bags, sensors: Dict[str, _Sensor], ref: 
         first = min(ns for s in sensors.values() for ns, _ in s.frames)
         origin = config.time_origin if config.time_origin is not None else first - first % 1_000_000_000
         stamps, unique = np.unique(np.array([p[0] for p in poses], dtype=np.int64), return_index=True)  # sorted, first of equal
-        _write_trajectory(tmp / "reference_poses.txt", np.array([(int(ns) - origin) / 10**9 for ns in stamps]),
-                          np.stack([poses[i][3] for i in unique]) @ posed_T_ref,
-                          header=f"world_T_{ref} from {config.trajectory} ({config.stamp} stamps - {origin} ns): "
-                                 "timestamp tx ty tz qx qy qz qw")
-        frames = sorted(({"sensor": s.name, "timestamp": (ns - origin) / 10**9, "file_path": rel}
-                         for s in sensors.values() for ns, rel in s.frames), key=lambda f: (f["timestamp"], f["sensor"]))
+        write_trajectory(tmp / "reference_poses.txt", np.array([(int(ns) - origin) / 10**9 for ns in stamps]),
+                         np.stack([poses[i][3] for i in unique]) @ posed_T_ref,
+                         header=f"world_T_{ref} from {config.trajectory} ({config.stamp} stamps - {origin} ns): "
+                                "timestamp tx ty tz qx qy qz qw")
+        frames = [{"sensor": s.name, "timestamp": (ns - origin) / 10**9, "file_path": rel} for s in sensors.values() for ns, rel in s.frames]
         meta = {
             "generator": "moisst-bag-to-rig", "bags": [str(b) for b in bags], "stamps": config.stamp,
             "clock": "header.stamp: each sensor's own clock" if config.stamp == "header" else "receive time: the recorder's clock",
@@ -365,11 +351,10 @@ def _convert(config: BagConfig, reader, bags, sensors: Dict[str, _Sensor], ref: 
             "trajectory": {"topic": config.trajectory, "type": traj_conns[0].msgtype, "extrinsic": extrinsic_source},
             "every": config.every, "start": config.start, "duration": config.duration, "downscale": config.downscale,
         }
-        rig = rig_json(ref, "reference_poses.txt", {n: (s.kind, priors[n][0], priors[n][1], s.info or {}) for n, s in sensors.items()},
-                       frames, meta)
-        (tmp / "rig.json").write_text(json.dumps(rig, indent=1) + "\n")
+        write_rig(tmp, ref, list(sensors), [n for n, s in sensors.items() if s.kind == "lidar"],
+                  {n: s.info for n, s in sensors.items() if s.info}, frames, priors, meta)
         load_rig(tmp)  # the result is checked before it is moved into place
-        _prepare_out(SimpleNamespace(out=out, root=bags[0], overwrite=config.overwrite), "ROS bag")
+        prepare_out(out, bags, config.overwrite, BagError, INSIDE)
         for entry in sorted(tmp.iterdir()):
             shutil.move(str(entry), str(out / entry.name))
     finally:

@@ -16,7 +16,8 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 from jaxtyping import Float, Float32, UInt8
 
-from moisst_ns.datasets.kitti360_io import _inv, _scaled_intrinsics
+from moisst_ns.datasets.kitti360_io import _inv
+from moisst_ns.datasets.rig_writer import scaled_intrinsics, shrink
 from moisst_ns.rig.format import RigFormatError
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -137,7 +138,7 @@ def camera_intrinsics(info, factor: int) -> Dict[str, object]:
         raise MessageError(f"camera_info size {info.width}x{info.height} is not positive")
     D = [float(v) for v in _field(info, "d")]
     model = info.distortion_model
-    intr = _scaled_intrinsics(K, (int(info.width), int(info.height)), factor)
+    intr = scaled_intrinsics(K, (int(info.width), int(info.height)), factor)
     if not any(D):
         return intr
     if model not in ("plumb_bob", "rational_polynomial") or any(D[5:]) or len(D) < 4:
@@ -197,9 +198,7 @@ def write_image(msg, msgtype: str, stem: Path, size: Tuple[int, int], factor: in
     else:
         pixels = raw_pixels(msg)
     _check_size((pixels.shape[1], pixels.shape[0]), size)
-    if factor > 1:
-        pixels = cv2.resize(pixels, (size[0] // factor, size[1] // factor), interpolation=cv2.INTER_AREA)
-    if not cv2.imwrite(str(stem.with_suffix(".png")), pixels):
+    if not cv2.imwrite(str(stem.with_suffix(".png")), shrink(pixels, factor)):
         raise MessageError(f"cannot write {stem.with_suffix('.png')}")
     return ".png"
 

@@ -8,27 +8,14 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
-
-def rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+from moisst_ns.datasets.synth_path import VehiclePath, rot_x, rot_y, rot_z  # noqa: F401 (re-exported)
 
 
 TEXTURE_SIZE = 512
-
-
 SKY_ZENITH = np.array([0.36, 0.52, 0.82])
-
-
 SKY_HORIZON = np.array([0.82, 0.87, 0.93])
-
-
 SUN = np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84])
-
-
 COLOUR_TEXTURES = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "stereo_motorcycle")
-
-
 GRAY_TEXTURES = ("brick", "camera", "cell", "coins", "gravel", "grass", "clock", "text")
 
 
@@ -272,91 +259,6 @@ class Scene:
         return out, hit
 
 
-def rot_x(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-@dataclass
-class VehiclePath:
-    """A smooth analytic drive: heading and speed profiles (period 10 s), integrated on a fine grid.
-
-    Time ``t`` is seconds since the first reference frame. Heading ``psi(t) = turn (1 - cos(pi t / 5)) / 2`` (0 to
-    ``turn`` over 5 s and back), speed ``v(t) = 6.5 - 2.5 cos(pi t / 5)`` (4 to 9 m/s and back), plus small pitch,
-    roll and bounce oscillations so every rotation axis moves a little (``drive="curve"``, the default).
-    ``drive="straight"``: heading 0 and speed 6.5 m/s throughout, no oscillation (flat, constant twist: a time offset
-    cannot be told from the lever arm along the direction of travel). ``drive="weave"``: the heading swings by
-    ``+-|turn| / 3`` with period 4 s at the curve's varying speed and oscillations (the twist keeps changing).
-    """
-
-    turn: float
-    """Heading change over the first 5 s, radians (sign = turn direction)."""
-    phases: np.ndarray
-    """Phases of the pitch / roll / bounce oscillations, radians."""
-    t_min: float
-    t_max: float
-    dt: float = 1e-3
-    drive: str = "curve"
-    """``curve``, ``straight`` or ``weave`` (see above)."""
-
-    def __post_init__(self):
-        self.grid = np.arange(int(round((self.t_max - self.t_min) / self.dt)) + 1) * self.dt + self.t_min
-        psi, speed = self.heading(self.grid), self.speed(self.grid)
-        vel = np.stack([speed * np.cos(psi), speed * np.sin(psi)], axis=-1)
-        steps = 0.5 * (vel[1:] + vel[:-1]) * self.dt
-        xy = np.concatenate([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
-        self.xy = xy - np.array([np.interp(0.0, self.grid, xy[:, 0]), np.interp(0.0, self.grid, xy[:, 1])])
-        seg = np.linalg.norm(np.diff(self.xy, axis=0), axis=1)
-        self.arclength = np.concatenate([[0.0], np.cumsum(seg)])
-        self.arclength -= np.interp(0.0, self.grid, self.arclength)
-
-    def heading(self, t):
-        if self.drive == "straight":
-            return np.zeros_like(np.asarray(t, dtype=np.float64))
-        if self.drive == "weave":
-            return abs(self.turn) / 3.0 * np.sin(2 * np.pi * np.asarray(t) / 4.0)
-        return self.turn * 0.5 * (1.0 - np.cos(np.pi * np.asarray(t) / 5.0))
-
-    def speed(self, t):
-        if self.drive == "straight":
-            return np.full_like(np.asarray(t, dtype=np.float64), 6.5)
-        return 6.5 - 2.5 * np.cos(np.pi * np.asarray(t) / 5.0)
-
-    def world_T_vehicle(self, t: np.ndarray) -> np.ndarray:
-        """(N, 4, 4) vehicle poses at times ``t`` (N,)."""
-        t = np.asarray(t, dtype=np.float64)
-        psi = self.heading(t)
-        p1, p2, p3 = self.phases
-        pitch = np.deg2rad(0.6) * np.sin(2 * np.pi * t / 1.7 + p1) - 0.004 * np.sin(np.pi * t / 5.0)
-        roll = np.deg2rad(0.5) * np.sin(2 * np.pi * t / 2.3 + p2)
-        bounce = 0.02 * np.sin(2 * np.pi * t / 1.3 + p3)
-        if self.drive == "straight":
-            pitch, roll, bounce = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
-        poses = np.zeros(t.shape + (4, 4))
-        for i in range(t.shape[0]):
-            poses[i, :3, :3] = rot_z(psi[i]) @ rot_y(pitch[i]) @ rot_x(roll[i])
-        poses[:, 0, 3] = np.interp(t, self.grid, self.xy[:, 0])
-        poses[:, 1, 3] = np.interp(t, self.grid, self.xy[:, 1])
-        poses[:, 2, 3] = bounce
-        poses[:, 3, 3] = 1.0
-        return poses
-
-    def at_arclength(self, s: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """Centre-line points (N, 2) and headings (N,) at arc lengths ``s`` (metres from the start position)."""
-        s = np.asarray(s, dtype=np.float64)
-        t = np.interp(s, self.arclength, self.grid)
-        xy = np.stack([np.interp(t, self.grid, self.xy[:, 0]), np.interp(t, self.grid, self.xy[:, 1])], axis=-1)
-        return xy, self.heading(t)
-
-    def s_at(self, t: float) -> float:
-        return float(np.interp(t, self.grid, self.arclength))
-
-
 def _facade(center, size, yaw, rng) -> SceneObject:
     texture, tint = _facade_texture(rng)
     return box_object(center, size, yaw, texture, float(rng.uniform(2.0, 7.0)), rng, tint,
@@ -365,9 +267,8 @@ def _facade(center, size, yaw, rng) -> SceneObject:
 
 
 def _ground(center_xy, extent: float, rng) -> SceneObject:
-    obj = box_object([center_xy[0], center_xy[1], -0.5], [extent, extent, 1.0], 0.0, "gravel", 3.5, rng,
-                     tint=(0.78, 0.74, 0.66), detail="grass", detail_scale=0.45, detail_strength=0.3)
-    return obj
+    return box_object([center_xy[0], center_xy[1], -0.5], [extent, extent, 1.0], 0.0, "gravel", 3.5, rng,
+                      tint=(0.78, 0.74, 0.66), detail="grass", detail_scale=0.45, detail_strength=0.3)
 
 
 def _street_objects(path: VehiclePath, s_start: float, s_end: float, rng: np.random.Generator) -> List[SceneObject]:
@@ -392,23 +293,18 @@ def _street_objects(path: VehiclePath, s_start: float, s_end: float, rng: np.ran
         while s < s_end:
             (xy,), (psi,) = path.at_arclength([s])
             normal = np.array([-np.sin(psi), np.cos(psi)])
-            kind = rng.uniform()
+            kind = rng.uniform()  # a pole, a car-size block or a low box, ``lat`` metres beside the road
+            lat = rng.uniform(*((3.4, 4.4) if kind < 0.4 else (2.9, 3.6) if kind < 0.8 else (3.2, 4.5)))
+            h = rng.uniform(3.0, 5.5) if kind < 0.4 else 0.0
+            c = xy + side * lat * normal
+            tex, tint = _facade_texture(rng)
             if kind < 0.4:
-                lat, h = rng.uniform(3.4, 4.4), rng.uniform(3.0, 5.5)
-                c = xy + side * lat * normal
-                tex, tint = _facade_texture(rng)
                 objs.append(box_object([c[0], c[1], 0.5 * h], [0.22, 0.22, h], psi, tex, 1.0, rng, tint))
             elif kind < 0.8:
-                lat = rng.uniform(2.9, 3.6)
-                c = xy + side * lat * normal
-                tex, tint = _facade_texture(rng)
                 size = [rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.95), rng.uniform(1.3, 1.7)]
                 objs.append(box_object([c[0], c[1], 0.5 * size[2]], size, psi + rng.uniform(-0.05, 0.05), tex,
                                        float(rng.uniform(1.2, 2.5)), rng, tint, detail="coins", detail_scale=0.3))
             else:
-                lat = rng.uniform(3.2, 4.5)
-                c = xy + side * lat * normal
-                tex, tint = _facade_texture(rng)
                 size = rng.uniform(0.6, 1.4, 3)
                 objs.append(box_object([c[0], c[1], 0.5 * size[2]], size, psi + rng.uniform(-0.5, 0.5), tex,
                                        float(rng.uniform(0.8, 1.6)), rng, tint))
@@ -456,14 +352,10 @@ def _plaza_objects(path: VehiclePath, s_start: float, s_end: float, rng: np.rand
                 continue
             tex, tint = _facade_texture(rng)
             objs.append(cylinder_object(p, radius, height, tex, float(rng.uniform(1.0, 3.0)), rng, tint))
-        elif kind < 0.85:
-            size = np.r_[rng.uniform(0.8, 4.0, 2), rng.uniform(0.8, 5.0)]
-            if not clear(p, 3.0 + 0.72 * max(size[0], size[1])):
-                continue
-            objs.append(_facade([p[0], p[1], 0.5 * size[2]], size, rng.uniform(0, np.pi), rng))
-        else:
-            size = np.r_[rng.uniform(4.0, 9.0, 2), rng.uniform(5.0, 12.0)]
-            if not clear(p, 3.5 + 0.72 * max(size[0], size[1])):
+        else:  # a small block (kind < 0.85) or a large one
+            (w_lo, w_hi, h_lo, h_hi, margin) = (0.8, 4.0, 0.8, 5.0, 3.0) if kind < 0.85 else (4.0, 9.0, 5.0, 12.0, 3.5)
+            size = np.r_[rng.uniform(w_lo, w_hi, 2), rng.uniform(h_lo, h_hi)]
+            if not clear(p, margin + 0.72 * max(size[0], size[1])):
                 continue
             objs.append(_facade([p[0], p[1], 0.5 * size[2]], size, rng.uniform(0, np.pi), rng))
         count -= 1

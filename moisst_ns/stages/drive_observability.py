@@ -38,7 +38,7 @@ import torch
 from jaxtyping import Float
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
-from moisst_ns.stages.observability import MIN_EFFECT, PARAMETERS, TEST_STEPS, marginal_information
+from moisst_ns.stages.observability import MIN_EFFECT, PARAMETERS, TEST_STEPS, _reason, excitation, marginal_information
 
 FD_STEPS = (1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4)
 """Central finite-difference steps per parameter: metres, radians, seconds."""
@@ -198,48 +198,15 @@ def weak_parameters(information: Float[np.ndarray, "7 7"], config: DriveObservab
     return out
 
 
-def excitation(traj: ReferenceTrajectory, times: Float[np.ndarray, "num"]) -> Dict[str, float]:
-    """What the drive does over ``times``: distance (m), speed range (m/s), heading/turn range and rotation about
-    the reference axes (peak to peak, degrees), and the spread of the body angular rate (deg/s).
-
-    Args:
-        traj: the reference trajectory.
-        times: reference-clock times (since ``t0``), seconds.
-
-    Returns:
-        ``{"distance_m", "speed_min", "speed_max", "turn_deg", "rotation_deg" (3,), "rate_spread_dps"}``.
-    """
+def drive_excitation(traj: ReferenceTrajectory, times: Float[np.ndarray, "num"]) -> Dict[str, float]:
+    """``observability.excitation`` of the drive over ``times`` (reference-clock times since ``t0``, seconds), the
+    rates by central differences."""
     t = torch.as_tensor(np.sort(times), dtype=torch.float64)
     h = 1e-3
-    poses = traj(t)
-    ahead, back = traj(t + h), traj(t - h)
-    speed = torch.linalg.norm(ahead[:, :3, 3] - back[:, :3, 3], dim=1) / (2 * h)
+    poses, ahead, back = traj(t), traj(t + h), traj(t - h)
+    vel = (ahead[:, :3, 3] - back[:, :3, 3]) / (2 * h)
     rate = roma.rotmat_to_rotvec(back[:, :3, :3].transpose(-1, -2) @ ahead[:, :3, :3]) / (2 * h)
-    rel = roma.rotmat_to_rotvec(poses[:1, :3, :3].transpose(-1, -2) @ poses[:, :3, :3]).numpy()
-    steps = np.linalg.norm(np.diff(poses[:, :3, 3].numpy(), axis=0), axis=1)
-    return {"distance_m": float(steps.sum()), "speed_min": float(speed.min()), "speed_max": float(speed.max()),
-            "turn_deg": float(np.rad2deg(np.linalg.norm(rel, axis=1).max())),
-            "rotation_deg": np.rad2deg(np.ptp(rel, axis=0)),
-            "rate_spread_dps": float(np.rad2deg(np.linalg.norm(rate.numpy() - rate.numpy().mean(0), axis=1).max()))}
-
-
-def _reason(name: str, model: str, partners: List[str], exc: Dict[str, float], effect: float) -> str:
-    """One line: why ``name`` is weak on this drive."""
-    with_ = f"; it trades against {' and '.join(partners)}" if partners else ""
-    if name == "time_offset":
-        return (f"speed {exc['speed_min']:.2f}-{exc['speed_max']:.2f} m/s and the turn rate varies by only "
-                f"{exc['rate_spread_dps']:.1f} deg/s over the drive: under a constant twist a time offset is a fixed "
-                f"extrinsic change (a straight constant-speed drive cannot separate it from the along-track lever arm){with_}")
-    if name in ("x", "y", "z") and model == "relative":
-        others = float(np.hypot(*np.delete(exc["rotation_deg"], "xyz".index(name))))
-        return (f"the reference frame turns only {others:.1f} deg about its axes other than {name}; seen through the "
-                f"sensor's own motion a lever arm shows only through such turns (a flat drive leaves the vertical weak){with_}")
-    if name in ("x", "y", "z"):
-        return (f"moving it by 10 cm changes the poses by {1000 * effect:.1f} mm RMS once the others re-fit; the speed "
-                f"({exc['speed_min']:.2f}-{exc['speed_max']:.2f} m/s) and turns ({exc['turn_deg']:.1f} deg) do not tell "
-                f"it from a time offset{with_}")
-    return (f"the drive covers {exc['distance_m']:.1f} m and turns {exc['turn_deg']:.1f} deg; seen through the sensor's "
-            f"own motion a rotation shows only in proportion to the motion across its axis{with_}")
+    return excitation(poses[:, :3, :3].numpy(), poses[:, :3, 3].numpy(), rate.numpy(), vel.numpy())
 
 
 def analyse_drive(
@@ -264,7 +231,7 @@ def analyse_drive(
     jac = pose_jacobian(traj, times, extrinsic, model, pairs, config.scene_depth_m)
     information = jac.T @ jac / max(len(jac) // 6, 1)  # per pose: RMS over poses
     marginal = marginal_information(information)
-    exc = excitation(traj, times)
+    exc = drive_excitation(traj, times)
     out = DriveObservability(sensor, model)
     weak_set = weak_parameters(information, config)
     for i, (name, step) in enumerate(zip(PARAMETERS, TEST_STEPS)):
@@ -274,7 +241,7 @@ def analyse_drive(
         partners = _partners(information, i)
         weak = i in weak_set
         out.dofs.append(DriveDof(name, effect, separability, partners, weak,
-                                 _reason(name, model, partners, exc, effect) if weak else ""))
+                                 _reason(name, exc, model, partners, effect) if weak else ""))
     return out
 
 

@@ -9,7 +9,9 @@ fraction of a LiDAR's range noise): the drive cannot tell that error apart, what
 given comes from the trajectory itself: a lever arm shows only through rotations about the other axes (a flat
 drive leaves the vertical weak), a rotation only through distance driven, a time offset only through velocity
 changes (at constant speed on a straight line it is collinear with the lever arm along the direction of travel;
-see Yang et al., "Degenerate motion analysis for aided INS", RSS 2019).
+see Yang et al., "Degenerate motion analysis for aided INS", RSS 2019). The parameter order, test steps, marginal
+information, the drive's ``excitation`` and the one ``_reason`` are shared with ``drive_observability`` (what the
+drive alone separates, before any training).
 
 Nothing here imports nerfstudio.
 """
@@ -17,16 +19,15 @@ Nothing here imports nerfstudio.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List
+from typing import List, Optional, Sequence
 
 import numpy as np
 import roma
 import torch
 from jaxtyping import Float
 
-PARAMETERS = ("x", "y", "z", "roll", "pitch", "yaw", "time_offset")
-"""Parameter names in report order: lever arm along the reference frame's axes; rotation about the sensor's own
-x, y, z axes; time offset."""
+from moisst_ns.rig.trust import PARAMETERS  # noqa: F401 (the one parameter order, re-exported)
+
 JACOBIAN_ORDER = (3, 4, 5, 0, 1, 2, 6)
 """Column of each of ``PARAMETERS`` in a Jacobian ordered (rotation vector, translation, time offset)."""
 TEST_STEPS = (0.10, 0.10, 0.10, np.deg2rad(1.0), np.deg2rad(1.0), np.deg2rad(1.0), 0.010)
@@ -76,39 +77,58 @@ def marginal_information(information: Float[np.ndarray, "7 7"]) -> Float[np.ndar
     return np.maximum(out, 0.0)
 
 
-def drive_excitation(traj, times: Float[np.ndarray, "num"], sensor_rotation: Float[np.ndarray, "3 3"]) -> dict:
-    """What the reference trajectory does over ``times``: rotation about each reference axis (peak to peak of the
-    rotation vector relative to the first pose, degrees), the largest turn (degrees), distance driven (m), the mean
-    direction of travel in the sensor's frame and the velocity change (m/s)."""
-    rot, pos, _, vel = traj.pose_and_rates(np.sort(times))
+def excitation(rot: Float[np.ndarray, "num 3 3"], pos: Float[np.ndarray, "num 3"], rate: Float[np.ndarray, "num 3"],
+               vel: Float[np.ndarray, "num 3"], sensor_rotation: Optional[Float[np.ndarray, "3 3"]] = None) -> dict:
+    """What the reference trajectory does at its sorted sample times, from ``world_R_ref``, ``world_t_ref`` (m), the
+    body angular rate (rad/s) and the velocity (m/s) there: distance driven (m), rotation about each reference axis
+    (peak to peak of the rotation vector relative to the first pose) and the largest turn (degrees), speed range (m/s),
+    spread of the angular rate (deg/s); with ``sensor_rotation`` (``ref_R_sensor``) also the mean direction of travel
+    in the sensor's frame and the largest velocity change (m/s)."""
     rel = roma.rotmat_to_rotvec(torch.from_numpy(np.einsum("ji,njk->nik", rot[0], rot))).numpy()
     steps = np.diff(pos, axis=0)
-    local = np.einsum("nji,nj->ni", rot[:-1] @ sensor_rotation, steps)  # each step in the sensor's frame
-    travel = local.sum(axis=0)
-    return {
-        "rotation_deg": np.rad2deg(np.ptp(rel, axis=0)),
-        "turn_deg": float(np.rad2deg(np.linalg.norm(rel, axis=1).max())),
-        "distance_m": float(np.sum(np.linalg.norm(steps, axis=1))),
-        "travel_direction": travel / max(float(np.linalg.norm(travel)), 1e-12),
-        "velocity_change_mps": float(np.max(np.linalg.norm(vel[:, None] - vel[None, :], axis=-1))),
-    }
+    speed = np.linalg.norm(vel, axis=1)
+    out = {"distance_m": float(np.sum(np.linalg.norm(steps, axis=1))), "speed_min": float(speed.min()),
+           "speed_max": float(speed.max()), "turn_deg": float(np.rad2deg(np.linalg.norm(rel, axis=1).max())),
+           "rotation_deg": np.rad2deg(np.ptp(rel, axis=0)),
+           "rate_spread_dps": float(np.rad2deg(np.linalg.norm(rate - rate.mean(0), axis=1).max()))}
+    if sensor_rotation is not None:
+        travel = np.einsum("nji,nj->ni", rot[:-1] @ sensor_rotation, steps).sum(axis=0)  # each step in the sensor's frame
+        out["travel_direction"] = travel / max(float(np.linalg.norm(travel)), 1e-12)
+        out["velocity_change_mps"] = float(np.max(np.linalg.norm(vel[:, None] - vel[None, :], axis=-1)))
+    return out
 
 
-def _reason(name: str, excitation: dict) -> str:
-    rot = excitation["rotation_deg"]
+def _reason(name: str, exc: dict, model: str = "scans", partners: Sequence[str] = (), effect: float = 0.0) -> str:
+    """One line: why ``name`` is weak on this drive (``exc``: its ``excitation``).
+
+    ``model``: ``scans`` (``analyse_observability``: LiDAR scans registered to each other), or the drive analysis's
+    ``absolute`` / ``relative`` (``drive_observability``), with the ``partners`` a parameter trades against and the
+    RMS effect (metres) of its test step."""
+    with_ = f"; it trades against {' and '.join(partners)}" if partners else ""
+    if name in ("x", "y", "z") and model != "absolute":
+        others = float(np.hypot(*np.delete(exc["rotation_deg"], "xyz".index(name))))
+        how = f" over the drive; a lever arm along {name}" if model == "scans" else "; seen through the sensor's own motion a lever arm"
+        return (f"the reference frame turns only {others:.1f} deg about its axes other than {name}{how} shows only "
+                f"through such turns (a flat drive leaves the vertical weak){with_}")
     if name in ("x", "y", "z"):
-        axis = "xyz".index(name)
-        others = float(np.hypot(*np.delete(rot, axis)))
-        return (f"the reference frame turns only {others:.1f} deg about its axes other than {name} over the drive; a lever "
-                f"arm along {name} shows only through such turns (a flat drive leaves the vertical weak)")
-    if name == "time_offset":
-        return (f"the velocity changes by only {excitation['velocity_change_mps']:.2f} m/s over the drive; a time offset "
+        return (f"moving it by 10 cm changes the poses by {1000 * effect:.1f} mm RMS once the others re-fit; the speed "
+                f"({exc['speed_min']:.2f}-{exc['speed_max']:.2f} m/s) and turns ({exc['turn_deg']:.1f} deg) do not tell "
+                f"it from a time offset{with_}")
+    if name == "time_offset" and model == "scans":
+        return (f"the velocity changes by only {exc['velocity_change_mps']:.2f} m/s over the drive; a time offset "
                 "trades against the lever arm along the direction of travel (a straight constant-speed drive cannot "
                 "separate them)")
-    direction = ", ".join(f"{v:.2f}" for v in excitation["travel_direction"])
-    return (f"the drive covers {excitation['distance_m']:.1f} m along the sensor's ({direction}) direction and turns only "
-            f"{excitation['turn_deg']:.1f} deg; a rotation error shows in proportion to the distance driven across its "
-            "axis, so a rotation about the direction of travel shows only through turns")
+    if name == "time_offset":
+        return (f"speed {exc['speed_min']:.2f}-{exc['speed_max']:.2f} m/s and the turn rate varies by only "
+                f"{exc['rate_spread_dps']:.1f} deg/s over the drive: under a constant twist a time offset is a fixed "
+                f"extrinsic change (a straight constant-speed drive cannot separate it from the along-track lever arm){with_}")
+    if model == "scans":
+        direction = ", ".join(f"{v:.2f}" for v in exc["travel_direction"])
+        return (f"the drive covers {exc['distance_m']:.1f} m along the sensor's ({direction}) direction and turns only "
+                f"{exc['turn_deg']:.1f} deg; a rotation error shows in proportion to the distance driven across its "
+                "axis, so a rotation about the direction of travel shows only through turns")
+    return (f"the drive covers {exc['distance_m']:.1f} m and turns {exc['turn_deg']:.1f} deg; seen through the sensor's "
+            f"own motion a rotation shows only in proportion to the motion across its axis{with_}")
 
 
 def analyse_observability(
@@ -135,12 +155,12 @@ def analyse_observability(
     marginal = marginal_information(information / max(total, 1e-12))
     dof_resid = max(total - len(PARAMETERS), 1.0)
     scatter = float(np.sqrt(np.sum(weights * residuals**2) / dof_resid))
-    excitation = drive_excitation(traj, times, sensor_rotation)
+    exc = excitation(*traj.pose_and_rates(np.sort(times)), sensor_rotation)
     dofs = []
     for name, info, step in zip(PARAMETERS, marginal, TEST_STEPS):
         sensitivity = float(np.sqrt(info))
         effect = float(sensitivity * step)
         sigma = scatter / np.sqrt(info * total) if info > 0 else float("inf")
         weak = bool(effect < MIN_EFFECT)
-        dofs.append(DofObservability(name, sensitivity, effect, float(sigma), weak, _reason(name, excitation) if weak else ""))
+        dofs.append(DofObservability(name, sensitivity, effect, float(sigma), weak, _reason(name, exc) if weak else ""))
     return Observability(dofs)
