@@ -111,11 +111,14 @@ class CalibrationOptimizer(CameraOptimizer):
         """Metric OpenCV ``world_T_sensor`` -> nerfstudio's normalised OpenGL camera-to-world (``WorldFrame``)."""
         return self.world.camera_to_model(world_T_sensor)
 
-    def frame_c2w(self, indices: Int[Tensor, "num"], prior: bool = False) -> Float[Tensor, "num 4 4"]:
-        """Calibrated (or prior) camera-to-world of training frames, nerfstudio frame, float64 (eq. 10)."""
+    def frame_c2w(self, indices: Int[Tensor, "num"], prior: bool = False, row_time: Optional[Float[Tensor, "num"]] = None) -> Float[Tensor, "num 4 4"]:
+        """Calibrated (or prior) camera-to-world of training frames, nerfstudio frame, float64 (eq. 10); with ``row_time``
+        (seconds after each frame's stamp: a rolling-shutter row's, ``geometry.row_time``) at those times."""
         assert self.rig is not None
         indices = indices.to(self.frame_sensor.device)
         sensor, stamp = self.frame_sensor[indices], self.frame_stamps[indices]
+        if row_time is not None:
+            stamp = stamp + row_time.to(stamp)
         fn = self.rig.prior_sensor_poses if prior else self.rig.sensor_poses
         return self.to_model_frame(fn(sensor, stamp))
 
@@ -131,29 +134,41 @@ class CalibrationOptimizer(CameraOptimizer):
         """Regenerate training rays from the current calibration (paper Fig. 2).
 
         Camera rays are re-posed exactly (origin to the calibrated centre, direction rotated by
-        ``R_calibrated R_prior^T``). LiDAR rays (``metadata["is_lidar"]``) are built from scratch: origin
-        ``T_r(t + delta_L) @ ref_T_L`` at the point's own time, direction through the point.
+        ``R_calibrated R_prior^T``), a rolling-shutter camera's onto the pose at its row's time
+        (``metadata["row_time"]``, seconds after the stamp, set by ``MoisstDataManager``). LiDAR rays
+        (``metadata["is_lidar"]``) are built from scratch: origin ``T_r(t + delta_L) @ ref_T_L`` at the point's own
+        time, direction through the point.
         """
         if self.rig is None or raybundle.camera_indices is None:
             return
         is_lidar = raybundle.metadata.get("is_lidar")
+        rows = raybundle.metadata.get("row_time")
         if is_lidar is None or not bool(is_lidar.any()):
-            raybundle.origins, raybundle.directions = self.camera_rays(raybundle.camera_indices, raybundle.origins, raybundle.directions)
+            raybundle.origins, raybundle.directions = self.camera_rays(raybundle.camera_indices, raybundle.origins, raybundle.directions, rows)
             return
         cam = ~is_lidar[:, 0]
         origins, directions = raybundle.origins.clone(), raybundle.directions.clone()
         if bool(cam.any()):
-            origins[cam], directions[cam] = self.camera_rays(raybundle.camera_indices[cam], raybundle.origins[cam], raybundle.directions[cam])
+            origins[cam], directions[cam] = self.camera_rays(raybundle.camera_indices[cam], raybundle.origins[cam], raybundle.directions[cam],
+                                                             None if rows is None else rows[cam])
         lid = is_lidar[:, 0]
         meta = raybundle.metadata
         origins[lid], directions[lid] = self.lidar_rays(meta["lidar_sensor"][lid, 0], meta["lidar_stamp"][lid, 0], meta["lidar_point"][lid])
         raybundle.origins, raybundle.directions = origins, directions
 
-    def camera_rays(self, camera_indices: Int[Tensor, "num 1"], origins: Float[Tensor, "num 3"], directions: Float[Tensor, "num 3"]):
-        """Re-pose camera rays generated at the prior poses onto the calibrated poses."""
+    def camera_rays(self, camera_indices: Int[Tensor, "num 1"], origins: Float[Tensor, "num 3"], directions: Float[Tensor, "num 3"],
+                    row_time: Optional[Float[Tensor, "num 1"]] = None):
+        """Re-pose camera rays generated at the prior poses (their frames' stamps) onto the calibrated poses, at
+        ``row_time`` seconds after the stamps where given (a rolling shutter's rows)."""
         idx = camera_indices.reshape(-1).long()
-        unique, inverse = torch.unique(idx, return_inverse=True)
-        calibrated = self.frame_c2w(unique)
+        if row_time is not None and bool((row_time != 0).any()):
+            key = torch.stack([idx.to(row_time.dtype), row_time.reshape(-1)], dim=-1)
+            unique_key, inverse = torch.unique(key, dim=0, return_inverse=True)
+            unique = unique_key[:, 0].long()
+            calibrated = self.frame_c2w(unique, row_time=unique_key[:, 1])
+        else:
+            unique, inverse = torch.unique(idx, return_inverse=True)
+            calibrated = self.frame_c2w(unique)
         prior = self.prior_c2w[unique.to(self.prior_c2w.device)]
         rot = (calibrated[:, :3, :3] @ prior[:, :3, :3].transpose(-1, -2)).to(directions)[inverse]
         new_origins = origins - prior[inverse, :3, 3].to(origins) + calibrated[inverse, :3, 3].to(origins)

@@ -26,6 +26,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from moisst_ns.data.layout import RayLayout
 from moisst_ns.rig.format import Rig, RigFormatError, load_lidar_scan
+from moisst_ns.rig.geometry import row_time
 
 LIDAR_KEYS = ("is_lidar", "lidar_point", "lidar_stamp", "lidar_sensor")
 
@@ -106,6 +107,7 @@ class MoisstDataManager(VanillaDataManager):
                 CONSOLE.print(f"LiDAR: {int(keep.sum())} of {keep.numel()} points inside the reference camera's view")
                 self.lidar_points, self.lidar_stamps, self.lidar_sensor = self.lidar_points[keep], self.lidar_stamps[keep], self.lidar_sensor[keep]
         self.lidar_generator = torch.Generator().manual_seed(int(kwargs.get("seed", 0)) + 12345)
+        self.frame_readout, self.frame_height = frame_readouts(self.rig, full, self.train_dataset.cameras)
         self.map_range, self.map_slot = self._map_ranges()
         if config.patch_size > 1:
             # nerfstudio 1.1.5's PatchPixelSampler rounds the batch with its default patch size (32) before it
@@ -127,7 +129,7 @@ class MoisstDataManager(VanillaDataManager):
             return None, None
         from moisst_ns.rig.format import Calibration
         from moisst_ns.stages.lidar_map import lidar_map
-        from moisst_ns.stages.map_range import opengl_to_opencv, range_image
+        from moisst_ns.stages.map_range import opengl_to_opencv, range_image, rolling_camera_points
 
         full = self.rig.rig
         unknown = [n for n in names if n not in full.sensors or full.sensors[n].type != "camera"]
@@ -148,7 +150,9 @@ class MoisstDataManager(VanillaDataManager):
         ranges = torch.full((len(frames), height, width), float("nan"))
         c2w = cameras.camera_to_worlds.double().numpy()
         for row, i in enumerate(frames):
-            image = range_image(opengl_to_opencv(c2w[i], points), float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]),
+            rolling = self.frame_readout is not None and bool(self.frame_readout[i] > 0)
+            cam = rolling_camera_points(self.rig, i, float(self.frame_readout[i]), world) if rolling else opengl_to_opencv(c2w[i], points)
+            image = range_image(cam, float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]),
                                 float(cameras.cy[i]), int(cameras.width[i]), int(cameras.height[i]))
             ranges[row, : image.shape[0], : image.shape[1]] = torch.from_numpy(image)
             slot[i] = row
@@ -248,6 +252,8 @@ class MoisstDataManager(VanillaDataManager):
         else:
             batch = self._sample(self.train_pixel_sampler, image_batch, total, fraction)
         ray_bundle = self.train_ray_generator(batch["indices"])
+        if self.frame_readout is not None:  # a rolling shutter: each ray at its row's time (the calibration optimiser)
+            ray_bundle.metadata["row_time"] = pixel_row_times(batch["indices"], self.frame_readout, self.frame_height).to(ray_bundle.origins.device)
         num_camera = len(ray_bundle)
         if self.single_pixel_sampler is not None and isinstance(image_batch["image"], torch.Tensor):
             layout = RayLayout(num_camera, num_patch=n_patch, patch_size=patch)
@@ -267,6 +273,26 @@ class MoisstDataManager(VanillaDataManager):
         batch["lidar_sensor"] = self.lidar_sensor[pick].to(device)
         batch["ray_layout"] = RayLayout(num_camera, len(pick), layout.num_patch, layout.patch_size)
         return concat_ray_bundles(ray_bundle, lidar), batch
+
+
+def frame_readouts(rig, full: Rig, cameras) -> Tuple[Tensor | None, Tensor | None]:
+    """Per training image, its camera's rolling-shutter readout (seconds, float64) and height (pixels); (None, None)
+    when every camera has a global shutter. ``rig``: the dataparser's RigData, ``full``: the loaded rig.json."""
+    readout = torch.tensor([float(full.sensors[rig.sensor_names[i]].readout_time) for i in rig.frame_sensor_index], dtype=torch.float64)
+    if not bool((readout > 0).any()):
+        return None, None
+    return readout, cameras.height.reshape(-1).long()
+
+
+def pixel_row_times(indices: Tensor, readout: Tensor, height: Tensor) -> Float[Tensor, "num 1"]:
+    """Capture time of sampled pixels ``indices`` (image, y, x) after their frames' stamps (``geometry.row_time`` of
+    the row's centre ``y + 0.5``, nerfstudio's pixel centre), seconds, float64."""
+    image, y = indices[:, 0].long().cpu(), indices[:, 1].cpu().to(torch.float64)
+    heights, out = height[image], torch.zeros(len(image), 1, dtype=torch.float64)
+    for h in torch.unique(heights).tolist():
+        rows = heights == h
+        out[rows, 0] = row_time(y[rows] + 0.5, readout[image][rows], int(h))
+    return out
 
 
 def sample_images(sampler, image_batch: Dict, positions: Tensor, count: int) -> Dict:

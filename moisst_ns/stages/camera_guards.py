@@ -23,9 +23,12 @@ from moisst_ns.stages.observability import TEST_STEPS
 from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
 
 PARAMETERS = ("roll", "pitch", "yaw", "x", "y", "z", "time_offset")
-"""The corrections in solver order (rotation about the camera's own axes, lever arm in the reference frame, delta)."""
+"""The corrections in solver order (rotation about the camera's own axes, lever arm in the reference frame, delta);
+with ``estimate_readout`` an 8th, the readout time's correction (seconds)."""
 TYPICAL_ERROR = np.asarray(TEST_STEPS)[[3, 4, 5, 0, 1, 2, 6]]
 """``observability.TEST_STEPS`` (10 cm, 1 deg, 10 ms) in solver order (rad, m, s)."""
+SCALE = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005, 0.005]
+"""The solver's ``x_scale`` per correction (rad, m, s, and s for the readout)."""
 
 
 def held_back_check(problem: Registration, theta: np.ndarray, factor: int, config) -> Tuple[float, float, bool]:
@@ -38,10 +41,10 @@ def held_back_check(problem: Registration, theta: np.ndarray, factor: int, confi
     Returns:
         (mean Huber cost at the prior, at the estimate, whether the estimate is significantly better).
     """
-    draws = [problem.pairs(t, factor, config.held_back_points) for t in (theta, np.zeros(7))]
+    draws = [problem.pairs(t, factor, config.held_back_points) for t in (theta, np.zeros_like(theta))]
     check = PairSet(*(np.concatenate([getattr(d, f) for d in draws]) for f in ("points", "frame_a", "own", "frame_b", "value_b")))
     r_est, _, ok_est = problem.residuals(theta, check, factor, jacobian=False)
-    r_pri, _, ok_pri = problem.residuals(np.zeros(7), check, factor, jacobian=False)
+    r_pri, _, ok_pri = problem.residuals(np.zeros_like(theta), check, factor, jacobian=False)
     both = ok_est & ok_pri
     if not both.any():
         return float("nan"), float("nan"), False
@@ -65,14 +68,14 @@ def typical_error_significance(problem: Registration, theta: np.ndarray, active:
     along-track lever arm, offset or roll (docs/method.md).
 
     Returns:
-        Per correction (solver order): mean increase / (3 standard errors); inf for inactive ones, 0 where fewer than two
-        frames have pairs.
+        Per correction (solver order, the first 7 only): mean increase / (3 standard errors); inf for inactive ones, 0
+        where fewer than two frames have pairs.
     """
     pairs = problem.pairs(theta, factor, config.held_back_points)
     r0, _, ok0 = problem.residuals(theta, pairs, factor, jacobian=False)
     cost0 = huber_costs(r0, config.huber)
     significance = np.full(7, np.inf)
-    for i in np.flatnonzero(active):
+    for i in np.flatnonzero(active[:7]):
         gain, valid = np.zeros(len(r0)), ok0.copy()
         for sign in (1.0, -1.0):
             step = theta.copy()
@@ -94,6 +97,17 @@ def bounds(config) -> Float[np.ndarray, "7"]:
     return np.r_[[np.deg2rad(config.max_rotation_deg)] * 3, [config.max_translation] * 3, config.max_time_offset]
 
 
+def limits(problem: Registration, config, size: int) -> Tuple[Float[np.ndarray, "p"], Float[np.ndarray, "p"]]:
+    """Lower and upper bounds of ``size`` corrections (7, or 8 with the readout's: the readout time stays in
+    ``[0, 0.999 frame period)``, the frame period the median interval between the camera's distinct stamps)."""
+    bound = bounds(config)
+    if size == 7:
+        return -bound, bound
+    stamps = np.unique(problem.camera.stamps)
+    period = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 0.1
+    return np.r_[-bound, -problem.model.readout], np.r_[bound, 0.999 * period - problem.model.readout]
+
+
 def points_per_frame(config, factor: int, finest: bool) -> int:
     """Map points sampled per camera frame at pyramid level ``factor``: ``fine_points_per_frame`` at the finest level
     (when set), else ``points_per_frame / factor`` (a level ``f`` times smaller has ``f^2`` times fewer pixels), at
@@ -109,8 +123,8 @@ def solve(problem: Registration, theta: np.ndarray, active: np.ndarray, pairs: P
     Returns:
         (the new corrections, residual evaluations used, (residuals, Jacobian, valid) at the solution).
     """
-    bound = bounds(config)[active]
-    scale = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005][active]
+    lower, upper = limits(problem, config, len(theta))
+    scale = SCALE[:len(theta)][active]
     cache: Dict[Tuple[bytes, bool], tuple] = {}
 
     def full(x, jacobian=False):
@@ -123,7 +137,7 @@ def solve(problem: Registration, theta: np.ndarray, active: np.ndarray, pairs: P
         return cache[key]
 
     solution = least_squares(lambda x: full(x)[0], theta[active], jac=lambda x: full(x, True)[1][:, active], method="trf",
-                             loss="huber", f_scale=config.huber, x_scale=scale, max_nfev=config.max_evaluations, bounds=(-bound, bound))
+                             loss="huber", f_scale=config.huber, x_scale=scale, max_nfev=config.max_evaluations, bounds=(lower[active], upper[active]))
     out = theta.copy()
     out[active] = solution.x
     return out, solution.nfev, full(solution.x, True)
@@ -172,7 +186,7 @@ def resolution_spread(level_end: Dict[int, np.ndarray]) -> Float[np.ndarray, "7"
     """
     levels = sorted(level_end)
     if len(levels) < 2:
-        return np.zeros(7)
+        return np.zeros(len(next(iter(level_end.values()))))
     return np.abs(level_end[levels[0]] - level_end[levels[1]]) / 2
 
 
@@ -194,12 +208,12 @@ def convergence_tail(iterates: Float[np.ndarray, "n 7"]) -> Float[np.ndarray, "7
         Per correction, same units; zeros with fewer than three iterates.
     """
     if len(iterates) < 3:
-        return np.zeros(7)
+        return np.zeros(len(iterates[0]) if len(iterates) else 7)
     a, b, c = (np.asarray(v, dtype=np.float64) for v in iterates[-3:])
     s1, s2 = b - a, c - b
     growing = (s1 * s2 > 0) & (np.abs(s2) >= np.abs(s1))
     denominator = np.abs(s2 - s1)
-    aitken = np.divide(s2 ** 2, denominator, out=np.zeros(7), where=denominator > 0)
+    aitken = np.divide(s2 ** 2, denominator, out=np.zeros(len(s2)), where=denominator > 0)
     return np.where(growing, np.abs(s1) + np.abs(s2), aitken)
 
 

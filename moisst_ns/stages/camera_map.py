@@ -24,7 +24,7 @@ import torch
 from jaxtyping import Float
 
 from moisst_ns.rig.format import Calibration, Rig
-from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
 from moisst_ns.stages.lidar_map import CameraStageError, NoMapError, PinholeModel, project
 
 
@@ -94,6 +94,23 @@ def patch_points(world: Float[np.ndarray, "num 3"], poses: Float[np.ndarray, "fr
     return np.concatenate([world, ring_world.reshape(-1, 3)])
 
 
+def triangulate(proj_a: Float[np.ndarray, "n 3 4"], proj_b: Float[np.ndarray, "n 3 4"], xy_a: Float[np.ndarray, "n 2"],
+                xy_b: Float[np.ndarray, "n 2"]) -> Float[np.ndarray, "n 3"]:
+    """Linear (DLT) triangulation of matches each seen from its own pair of poses (``cv2.triangulatePoints`` with a
+    projection matrix per match: a rolling shutter's rows).
+
+    Args:
+        proj_a, proj_b: ``camera_T_world[:3]`` of each match's two observations.
+        xy_a, xy_b: their normalised (undistorted) image coordinates.
+
+    Returns:
+        World points (nan where the solution is at infinity).
+    """
+    rows = [xy[:, k:k + 1] * proj[:, 2] - proj[:, k] for proj, xy in ((proj_a, xy_a), (proj_b, xy_b)) for k in (0, 1)]
+    hom = np.linalg.svd(np.stack(rows, axis=1))[2][:, -1]
+    return hom[:, :3] / np.where(np.abs(hom[:, 3:]) > 1e-12, hom[:, 3:], np.nan)
+
+
 def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, log: Callable[[str], None] = print) -> Float[np.ndarray, "num 3"]:
     """Triangulated SIFT features of the reference camera, world frame, metres.
 
@@ -121,6 +138,15 @@ def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, lo
     stamps = torch.tensor([f.timestamp for f in frames], dtype=torch.float64) - float(rig.trajectory_stamps[0])
     T = torch.from_numpy(np.asarray(calibration.T_ref_sensor[name], dtype=np.float64))
     poses = (traj(stamps + float(calibration.time_offset[name])) @ T).numpy()
+    readout, height = float(spec.readout_time), int(spec.intrinsics["h"])
+
+    def pose_at(f: int, i: np.ndarray) -> np.ndarray:
+        """Frame ``f``'s pose for its keypoints ``i``: at each keypoint's row's time (a rolling shutter), (n, 4, 4)."""
+        if not readout:
+            return np.broadcast_to(poses[f], (len(i), 4, 4))
+        t = stamps[f] + float(calibration.time_offset[name]) + torch.from_numpy(row_time(keys[f][i, 1] + 0.5, readout, height))
+        return (traj(t) @ T).numpy()
+
     K, dist = _camera_matrix(spec.intrinsics), _distortion(spec.intrinsics)
     model = PinholeModel.of(spec.intrinsics)
     sift = cv2.SIFT_create(nfeatures=config.features)
@@ -144,15 +170,23 @@ def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, lo
                 continue
             ia, ib = np.array([m.queryIdx for m in pairs]), np.array([m.trainIdx for m in pairs])
             norm = [cv2.undistortPoints(keys[f][i].reshape(-1, 1, 2), K, dist).reshape(-1, 2) for f, i in ((a, ia), (b, ib))]
-            proj = [np.linalg.inv(poses[f])[:3] for f in (a, b)]
-            hom = cv2.triangulatePoints(proj[0], proj[1], norm[0].T, norm[1].T)
-            world = (hom[:3] / np.where(np.abs(hom[3]) > 1e-12, hom[3], np.nan)).T
+            if readout:
+                seen = [pose_at(f, i) for f, i in ((a, ia), (b, ib))]
+                world = triangulate(np.linalg.inv(seen[0])[:, :3], np.linalg.inv(seen[1])[:, :3], norm[0], norm[1])
+            else:
+                proj = [np.linalg.inv(poses[f])[:3] for f in (a, b)]
+                hom = cv2.triangulatePoints(proj[0], proj[1], norm[0].T, norm[1].T)
+                world = (hom[:3] / np.where(np.abs(hom[3]) > 1e-12, hom[3], np.nan)).T
             ok = np.all(np.isfinite(world), axis=1)
             for f, i in ((a, ia), (b, ib)):
-                cam = (world - poses[f][:3, 3]) @ poses[f][:3, :3]
+                if readout:
+                    pose = pose_at(f, i)
+                    cam = np.einsum("nji,nj->ni", pose[:, :3, :3], np.nan_to_num(world) - pose[:, :3, 3])
+                else:
+                    cam = (world - poses[f][:3, 3]) @ poses[f][:3, :3]
                 uv, z = project(model, torch.from_numpy(np.nan_to_num(cam)))
                 ok &= (z.numpy() > 0.5) & (np.linalg.norm(uv.numpy() - (keys[f][i] + 0.5), axis=1) < config.max_reprojection_px)
-            rays = [world - poses[f][:3, 3] for f in (a, b)]
+            rays = [world - pose_at(f, i)[:, :3, 3] for f, i in ((a, ia), (b, ib))]
             cos = np.sum(rays[0] * rays[1], axis=1) / np.maximum(np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1), 1e-12)
             ok &= np.degrees(np.arccos(np.clip(cos, -1, 1))) >= config.min_parallax_deg
             points.append(world[ok])

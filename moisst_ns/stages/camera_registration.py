@@ -15,7 +15,10 @@ image pyramid (as INF: 8 -> 4 -> 2 -> 1) for the basin; occlusions by a z-buffer
 direct image alignment against known depth, as in direct visual odometry, with the LiDAR giving the depth.
 
 A camera whose held-back photometric cost (pairs not used in the fit) is not lower at the estimate than at its
-prior keeps its prior (``CameraResult.kept_prior``). Nothing here imports nerfstudio.
+prior keeps its prior (``CameraResult.kept_prior``). A rolling-shutter camera (rig.json's ``readout_time``) sees each
+map point from the pose at its row's time, ``T_r(s_k + row_time(v) + delta_c) @ ref_T_c`` (``photometric.CameraModel``),
+the reference camera's frames alike; ``estimate_readout`` fits the readout too, an 8th unknown at the two finest levels.
+Nothing here imports nerfstudio.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from jaxtyping import Float
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
+from moisst_ns.stages.camera_config import CameraRegistrationConfig
 from moisst_ns.stages.camera_map import FeatureMapConfig, feature_map
 from moisst_ns.stages.feature_start import FeatureStart, FeatureStartConfig, feature_start
 from moisst_ns.stages.lidar_map import CameraStageError, NoOverlapError, PinholeModel, lidar_map, load_pyramid, pyramid_factors
@@ -37,111 +41,6 @@ from moisst_ns.stages.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, c
                                             resolution_spread, solve, split_half_spread, typical_error_significance)
 from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, robust_cost
 from moisst_ns.stages.uncertainty_math import least_squares_sigma
-
-@dataclass
-class CameraRegistrationConfig:
-    """Settings of the camera-registration stage (image sizes and drives enter only through the pyramid rule)."""
-
-    map_voxel: float = 0.05
-    """Voxel size of the LiDAR map, metres."""
-    min_range: float = 2.0
-    """LiDAR points closer than this to their sensor are left out of the map (the vehicle itself), metres."""
-    max_depth: float = 40.0
-    """Map points farther than this from a camera are not used (a pixel covers too much there), metres."""
-    points_per_frame: int = 600
-    """Map points sampled per camera frame and outer iteration at full resolution (weighted by the image gradient);
-    a level ``f`` times smaller samples ``f`` times fewer (it has ``f^2`` times fewer pixels)."""
-    sample_gradient_power: float = 1.0
-    """Map points are drawn with probability proportional to ``|grad I|^p`` at their projection in the camera's frame:
-    1 weights by the gradient's magnitude, 2 by what a point tells about its projection (a residual changes by
-    ``grad I . du``: its information is the squared gradient), 0 draws uniformly among the visible points."""
-    min_width: int = 40
-    """Coarsest pyramid level: halve the images while they stay at least this many pixels wide."""
-    outer_iterations: int = 3
-    """At most this many outer iterations per coarser pyramid level (visibility, samples and partners re-chosen at the
-    current estimate); a level ends earlier once an iteration moves the projections by less than ``stop_px``."""
-    max_evaluations: int = 20
-    """Residual evaluations per inner least-squares solve."""
-    fine_iterations: int = 6
-    """At most this many outer iterations at the finest pyramid level. Each one draws its pairs at the current
-    estimate, and the minimum follows the draw a little (visibility, image-gradient weights, which pairs leave the
-    image), so along the flat along-track / time-offset valley the estimate creeps towards the minimum over several
-    iterations (320x240 plaza seed 2, side camera: 1.92, 1.15, 0.96, 0.95 cm; 1.22, 0.52, 0.47, 0.48 ms)."""
-    stop_px: float = 0.1
-    """A level ends once an outer iteration moves the projections by less than this (RMS, that level's pixels)..."""
-    fine_stop_px: float = 0.02
-    """...the finest level once they move less than this (the creep above moves them 0.02-0.1 px per iteration: a
-    tenth of a pixel stopped it after the second iteration)."""
-    huber: float = 0.5
-    """Huber scale of the residuals, in standard deviations of the image's grey level."""
-    zbuffer_cell: int = 4
-    """Z-buffer block size, full-resolution pixels."""
-    occlusion_margin_m: float = 0.3
-    """A point counts as visible within this depth of the nearest map point in its block, metres..."""
-    occlusion_margin_fraction: float = 0.03
-    """...plus this fraction of its depth."""
-    fine_points_per_frame: int = 5000
-    """Map points sampled per camera frame at the finest pyramid level (0: ``points_per_frame``), there and in the
-    split halves. The finest level's minimum moves with the sample far more than its formal sigma says (the residuals
-    are image structure, not pixel noise): 320x240 street seed 0, side camera, four samples drawn at the truth, time
-    offset spread 0.34 ms and along-track lever arm 2.9 mm with 600 points, 0.08 ms and 0.6 mm with 5000, at about the
-    same solve time (the z-buffers dominate)."""
-    own_baseline: float = 1.5
-    """A camera's own partner frame is the first at least this far (driving distance) from the frame, metres."""
-    fine_baseline: float = 3.0
-    """The same at the finest pyramid level (0: ``own_baseline``): more parallax sharpens the along-track terms
-    (measured, stages alone, 320x240: side camera's offset 1.08/0.98/0.28 ms -> 0.31/0.45/0.70 on three rigs)."""
-    held_back_points: int = 300
-    """Map points per frame of the held-back check (estimate vs prior), drawn afresh after the fit."""
-    max_translation: float = 2.0
-    """Bound on the translation correction per axis, metres."""
-    max_rotation_deg: float = 30.0
-    """Bound on the rotation correction per axis, degrees."""
-    max_time_offset: float = 0.3
-    """Bound on the time-offset correction, seconds."""
-    estimate_extrinsic: bool = True
-    """Estimate the extrinsic (else it stays at the prior)."""
-    estimate_time_offset: bool = True
-    """Estimate the time offset (else it stays at the prior)."""
-    min_frames: int = 10
-    """A camera with fewer frames keeps its prior here (the NeRF calibrates it): each half of the drive must hold
-    enough frames for the split-half test (on a 6-frame 48x36 rig the fits ended worse than the priors)."""
-    max_cost_ratio: float = 5.0
-    """A fit whose final cost is more than this many times the reference camera's own cost (its frames paired with
-    each other at their known poses: the scene's and images' own inconsistency) is a wrong minimum and keeps the prior
-    (measured: 1.1-2.7x at the truth with a LiDAR map, 4.1x with a feature map; 6-7x for the wrong minima seen)."""
-    max_split_half: float = 2.0
-    """A fit whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms) on any parameter is
-    not determined by the data and keeps the prior (measured on 96x72 rigs: 0.3-10 ms and 1-6 cm for fits that were
-    right, 58-63 cm and 63 ms for one that was 1.5 m off)."""
-    min_significance: float = 1.0
-    """A fit whose held-back cost rises by less than this many times three standard errors over the frames when one
-    correction is stepped by a typical prior error (10 cm, 1 deg, 10 ms; ``typical_error_significance``) keeps the
-    prior, and ``moisst-calibrate`` holds it there (the NeRF sees the same view): that view does not determine the
-    correction, so wherever the fit ended along it is not the data's answer (measured at the truth, 96x72 rigs: 0.1-0.9
-    on some correction for the side cameras accepted 40 and 131 cm off, >= 1.3 on all for the one accepted within
-    2 cm, >= 1.5 for every forward-right camera; >= 3 for both cameras at 320x240; with 1, every wrong acceptance on
-    twelve 96x72 rigs kept its prior: docs/method.md). 0 switches the test off."""
-    feature_start: bool = True
-    """Start each camera from its pose fitted to SIFT features matched to the reference camera's map-anchored
-    keypoints (``feature_start``) where that fit holds, else from its prior (a side camera the reference never
-    overlaps); the photometric basin is about a pixel at the coarsest level, the features' is the whole image."""
-    split_half: bool = True
-    """Also solve the two halves of the drive and report sigma as at least their spread (``split_half_spread``; two
-    more solves at full resolution)."""
-    resolution_spread: bool = True
-    """Report sigma as at least half the change of the estimate between the two finest pyramid levels
-    (``camera_guards.resolution_spread``: the bias a resolution leaves, which neither the formal sigma nor the halves
-    see; no extra solve). Measured on the quick benchmark's 96x72 runs and a 320x240 run: accepted cameras' parameters
-    within 3 sigma 40 of 78 without it, 72 of 78 with it."""
-    convergence_tail: bool = True
-    """Report sigma as at least the distance the descent may still have had to go (``camera_guards.convergence_tail``:
-    Aitken's delta^2 from the last three outer iterations; no extra solve). Measured on the quick benchmark's runs and a
-    320x240 run: accepted cameras' parameters within 3 sigma 72 -> 73 of 78, and a time offset 5.2x its sigma from the
-    truth brought to 4.3x."""
-    seed: int = 0
-    """Seed of the point samples."""
-
 
 
 def load_camera(rig: Rig, sensor: str, factors: Sequence[int]) -> CameraFrames:
@@ -151,7 +50,7 @@ def load_camera(rig: Rig, sensor: str, factors: Sequence[int]) -> CameraFrames:
         raise CameraStageError(f"{rig.root / 'rig.json'}: frames: camera {sensor} has {len(frames)} frame(s); at least 2 are needed")
     stamps = np.array([f.timestamp for f in frames]) - float(rig.trajectory_stamps[0])
     return CameraFrames(sensor, stamps, load_pyramid(rig, sensor, [f.file_path for f in frames], factors),
-                        PinholeModel.of(rig.sensors[sensor].intrinsics))
+                        PinholeModel.of(rig.sensors[sensor].intrinsics), float(rig.sensors[sensor].readout_time))
 
 
 
@@ -200,6 +99,18 @@ class CameraResult:
     held_there: bool = False
     """The prior is kept and ``moisst-calibrate`` holds it there through the NeRF too (``note`` says why): a ``blind``
     camera, or one that shares no view with the reference camera of a rig without a LiDAR."""
+    readout_prior: float = 0.0
+    """rig.json's readout time, seconds."""
+    readout_time: float = 0.0
+    """The readout time the calibration uses: the estimate with ``estimate_readout`` when it is determined (sigma at most
+    ``max_readout_sigma``) and the camera leaves its prior, else ``readout_prior``."""
+    readout_estimate: Optional[float] = None
+    """The fit's readout time with ``estimate_readout`` (None without), seconds."""
+    readout_sigma: Optional[float] = None
+    """Its sigma (the largest of the four parts, as ``sigma``), seconds."""
+    readout_note: str = ""
+    """Why ``readout_time`` is not the estimate: the drive does not determine it (the camera is then registered again
+    with rig.json's readout: the result is that fit's), or the camera kept its prior."""
 
 
 def _corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
@@ -225,10 +136,11 @@ def _descend(problem: Registration, config: CameraRegistrationConfig, log: Calla
     factor: the corrections at the end of that level})``."""
     start = time.perf_counter()
     name = problem.camera.sensor
-    active = np.array([config.estimate_extrinsic] * 6 + [config.estimate_time_offset])
-    theta, history, last, level_end = np.where(active, theta, 0.0), [], None, {}
+    theta = np.r_[theta, np.zeros(len(_active(config)) - len(theta))]
+    theta, history, last, level_end = np.where(_active(config), theta, 0.0), [], None, {}
     for factor in sorted(problem.camera.levels, reverse=True):
         finest = factor == min(problem.camera.levels)
+        active = _active(config, factor in sorted(problem.camera.levels)[:READOUT_LEVELS])
         for outer in range(config.fine_iterations if finest else config.outer_iterations):
             pairs = problem.pairs(theta, factor, points_per_frame(config, factor, finest))
             if len(pairs.points) < 50:
@@ -241,8 +153,10 @@ def _descend(problem: Registration, config: CameraRegistrationConfig, log: Calla
             history.append({"level": factor, "iteration": outer, "pairs": int(ok.sum()), "cost": robust_cost(res[ok], config.huber),
                             "T_ref_sensor": pose.tolist(), "time_offset": offset, "correction": theta.tolist(),
                             "elapsed_s": time.perf_counter() - start})
+            if len(theta) > 7:
+                history[-1]["readout_time"] = problem.model.readout + float(theta[7])
             log(f"[camera-registration] {name}: 1/{factor} resolution, iteration {outer}: {int(ok.sum())} pairs, "
-                f"cost {history[-1]['cost']:.4f}, {evaluations} evaluations")
+                f"cost {history[-1]['cost']:.4f}, {evaluations} evaluations" + (f", readout {history[-1]['readout_time'] * 1000:.2f} ms" if len(theta) > 7 else ""))
             if _pixel_motion(problem, theta, (theta - previous)[active], active, pairs, factor) < (config.fine_stop_px if finest else config.stop_px):
                 break
         level_end[factor] = theta.copy()
@@ -254,21 +168,23 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
     """The guards and sigma of one descent (``_descend``): the result, the prior where a guard says so."""
     start = time.perf_counter()
     theta, history, (res, jac, ok, pairs), level_end = descent
-    active = np.array([config.estimate_extrinsic] * 6 + [config.estimate_time_offset])
+    active = _active(config)
     finest = min(problem.camera.levels)
-    formal = np.zeros(7)
+    formal = np.zeros(len(active))
     if active.any():
         weights = np.sqrt(np.minimum(1.0, config.huber / np.maximum(np.abs(res[ok]), 1e-12)))
         formal[active] = least_squares_sigma(jac[ok][:, active] * weights[:, None], res[ok] * weights, pairs.frame_a[ok]).sigma
-    spread = split_half_spread(problem, theta, active, finest, config) if config.split_half and active.any() else np.zeros(7)
-    resolution = resolution_spread(level_end) if config.resolution_spread else np.zeros(7)
-    tail = convergence_tail([h["correction"] for h in history]) if config.convergence_tail else np.zeros(7)
+    spread = split_half_spread(problem, theta, active, finest, config) if config.split_half and active.any() else np.zeros(len(active))
+    resolution = resolution_spread(level_end) if config.resolution_spread else np.zeros(len(active))
+    tail = convergence_tail([h["correction"] for h in history]) if config.convergence_tail else np.zeros(len(active))
+    if config.estimate_readout and config.convergence_tail:  # the readout's tail from the levels that fit it
+        tail[7] = convergence_tail([h["correction"] for h in history if h["level"] in sorted(problem.camera.levels)[:READOUT_LEVELS]])[7]
     cost_pri, cost_est, better = held_back_check(problem, theta, finest, config)
-    at_bound = [PARAMETERS[i] for i in np.flatnonzero(active & (np.abs(theta) >= 0.999 * bounds(config)))]
+    at_bound = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (np.abs(theta[:7]) >= 0.999 * bounds(config)))]
     ratio = history[-1]["cost"] / floor_cost if floor_cost else 0.0
-    undetermined = [PARAMETERS[i] for i in np.flatnonzero(active & (spread > config.max_split_half * TYPICAL_ERROR))]
+    undetermined = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (spread[:7] > config.max_split_half * TYPICAL_ERROR))]
     significance = typical_error_significance(problem, theta, active, finest, config) if config.min_significance > 0 else np.full(7, np.inf)
-    blind = [PARAMETERS[i] for i in np.flatnonzero(active & (significance < config.min_significance))]
+    blind = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (significance < config.min_significance))]
     kept = not better or bool(at_bound) or ratio > config.max_cost_ratio or bool(undetermined) or bool(blind)
     prior = problem.model.prior.numpy()
     pose, offset = (prior, problem.model.prior_offset) if kept else _corrected(prior, problem.model.prior_offset, theta)
@@ -283,10 +199,38 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
         reasons.append(f"its view does not tell a typical prior error apart on {', '.join(blind)} (held-back cost increase under "
                        f"{config.min_significance:g}x three standard errors over the frames)")
     note = "; ".join(reasons)
-    return CameraResult(problem.camera.sensor, prior, problem.model.prior_offset, pose, offset, np.fmax.reduce([formal, spread, resolution, tail]).tolist(), cost_pri,
-                        cost_est, kept, history, wall_s + time.perf_counter() - start, note, formal.tolist(), ratio, spread.tolist(), begun,
-                        significance.tolist() if config.min_significance > 0 else [], blind, resolution.tolist(),
-                        tail.tolist(), held_there=bool(blind))
+    sigma = np.fmax.reduce([formal, spread, resolution, tail])
+    result = CameraResult(problem.camera.sensor, prior, problem.model.prior_offset, pose, offset, sigma[:7].tolist(), cost_pri,
+                          cost_est, kept, history, wall_s + time.perf_counter() - start, note, formal[:7].tolist(), ratio, spread[:7].tolist(), begun,
+                          significance.tolist() if config.min_significance > 0 else [], blind, resolution[:7].tolist(),
+                          tail[:7].tolist(), held_there=bool(blind), readout_prior=problem.model.readout, readout_time=problem.model.readout)
+    return _with_readout(result, theta, sigma, config) if config.estimate_readout else result
+
+
+UNDETERMINED = "the drive does not determine the readout time"
+"""How ``CameraResult.readout_note`` begins when the readout's sigma exceeds ``max_readout_sigma``."""
+READOUT_LEVELS = 2
+"""With ``estimate_readout`` the readout is fitted at this many of the finest pyramid levels (coarser, a readout error
+moves the projections by a fraction of their pixel: it stays at rig.json's there), so the resolution spread sees it."""
+
+
+def _active(config: CameraRegistrationConfig, readout: bool = True) -> np.ndarray:
+    """Which corrections the fit moves: rotation, translation, time offset, and with ``estimate_readout`` the readout
+    (``readout``: at this level)."""
+    return np.array([config.estimate_extrinsic] * 6 + [config.estimate_time_offset] + [readout] * config.estimate_readout)
+
+
+def _with_readout(result: CameraResult, theta: np.ndarray, sigma: np.ndarray, config: CameraRegistrationConfig) -> CameraResult:
+    """``result`` with the fitted readout time (``theta[7]``, sigma ``sigma[7]``) and whether the calibration takes it."""
+    estimate, spread = result.readout_prior + float(theta[7]), float(sigma[7])
+    note = ""
+    if not spread <= config.max_readout_sigma:
+        note = (f"{UNDETERMINED}: {estimate * 1000:.1f} ms, sigma {spread * 1000:.1f} ms "
+                f"(over {config.max_readout_sigma * 1000:g} ms); rig.json's {result.readout_prior * 1000:g} ms is kept")
+    elif result.kept_prior:
+        note = f"the camera keeps its prior, and rig.json's readout time {result.readout_prior * 1000:g} ms with it"
+    return replace(result, readout_estimate=estimate, readout_sigma=spread, readout_note=note,
+                   readout_time=result.readout_prior if note else estimate)
 
 
 def _started(initial: Optional[FeatureStart]) -> str:
@@ -300,7 +244,7 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
     guards; ``floor_cost``: ``reference_cost`` of the rig (None: no wrong-minimum test); ``initial``: the feature
     start (None or without ``theta``: start from the prior)."""
     start = time.perf_counter()
-    theta0 = initial.theta if initial is not None and initial.theta is not None else np.zeros(7)
+    theta0 = initial.theta if initial is not None and initial.theta is not None else np.zeros(len(_active(config)))
     descent = _descend(problem, config, log, theta0)
     return _guarded(problem, config, floor_cost, descent, _started(initial), time.perf_counter() - start)
 
@@ -312,7 +256,7 @@ def _best_start(problem: Registration, config: CameraRegistrationConfig, log: Ca
     if initial is None or initial.theta is None:
         return register_camera(problem, config, log, floor_cost, initial)
     start = time.perf_counter()
-    descents = [(_descend(problem, config, log, initial.theta), _started(initial)), (_descend(problem, config, log, np.zeros(7)), "prior")]
+    descents = [(_descend(problem, config, log, initial.theta), _started(initial)), (_descend(problem, config, log, np.zeros(len(_active(config)))), "prior")]
     costs = [d[1][-1]["cost"] for d, _ in descents]
     order = np.argsort(costs, kind="stable")
     log(f"[camera-registration] {problem.camera.sensor}: final cost {costs[0]:.4f} from the features, {costs[1]:.4f} from the prior")
@@ -333,11 +277,13 @@ class CameraStageResult:
     map_points: int
 
 
-def _prior_kept(name: str, calibration: Calibration, why: str) -> CameraResult:
+def _prior_kept(name: str, calibration: Calibration, why: str, rig: Optional[Rig] = None) -> CameraResult:
     """The result of a camera the stage does not fit: its prior, sigma inf, ``why`` as the note."""
     prior = np.asarray(calibration.T_ref_sensor[name], dtype=np.float64)
     offset = float(calibration.time_offset[name])
-    return CameraResult(name, prior, offset, prior, offset, [float("inf")] * 7, float("nan"), float("nan"), True, note=why)
+    readout = float(rig.sensors[name].readout_time) if rig is not None else 0.0
+    return CameraResult(name, prior, offset, prior, offset, [float("inf")] * 7, float("nan"), float("nan"), True, note=why,
+                        readout_prior=readout, readout_time=readout)
 
 
 def camera_sensors(rig: Rig) -> List[str]:
@@ -373,7 +319,7 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             raise CameraStageError(f"{rig.root / 'rig.json'}: sensors.{name}: not a non-reference camera of this rig (cameras: {cameras})")
     cameras = list(sensors) if sensors else cameras
     out = Calibration(calibration.reference_sensor, dict(calibration.T_ref_sensor), dict(calibration.time_offset))
-    results = {n: _prior_kept(n, calibration, f"only {len(rig.frames_of(n))} frames; the stage needs {config.min_frames}")
+    results = {n: _prior_kept(n, calibration, f"only {len(rig.frames_of(n))} frames; the stage needs {config.min_frames}", rig)
                for n in cameras if len(rig.frames_of(n)) < config.min_frames}
     for name, r in results.items():
         log(f"[camera-registration] {name}: {r.note}; it keeps its prior here")
@@ -405,14 +351,19 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
                 log(f"[camera-registration] {name}: {initial.note}")
         try:
             results[name] = _best_start(problem, config, log, floor, initial)
+            if results[name].readout_note.startswith(UNDETERMINED):  # refitted with rig.json's readout, which it keeps
+                log(f"[camera-registration] {name}: {results[name].readout_note}; refitting with it")
+                again = Registration(traj, world, problem.camera, reference, calibration, config)
+                results[name] = replace(_best_start(again, replace(config, estimate_readout=False), log, floor, initial),
+                                        **{k: getattr(results[name], k) for k in ("readout_estimate", "readout_sigma", "readout_note")})
         except NoOverlapError as err:
-            results[name] = _prior_kept(name, calibration, str(err))
+            results[name] = _prior_kept(name, calibration, str(err), rig)
             log(f"[camera-registration] {name}: {err}; it keeps its prior here")
         r = results[name]
         if lidarless and initial is not None and initial.theta is None:  # neither this stage nor the NeRF can place it
             why = (f"it shares no view with {reference_name} ({initial.note}) and the rig has no LiDAR: fitted to {reference_name}'s "
                    "triangulated features alone, it inherits their errors, which none of its sigma parts sees")
-            r = results[name] = replace(r, estimate=r.prior, time_offset=r.prior_offset, kept_prior=True, held_there=True,
+            r = results[name] = replace(r, estimate=r.prior, time_offset=r.prior_offset, kept_prior=True, held_there=True, readout_time=r.readout_prior,
                                         note=f"{r.note}; {why}" if r.kept_prior and r.note else why)
             log(f"[camera-registration] {name}: {why}; it keeps its prior")
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset

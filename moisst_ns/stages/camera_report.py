@@ -31,7 +31,9 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
     yaw, time_offset``; m, rad, s); a parameter whose sigma exceeds its typical prior error (10 cm, 1 deg, 10 ms) is
     listed in ``weak``; ``blind`` lists those its view does not tell a typical prior error apart on
     (``typical_error_significance`` under ``min_significance``): such a camera keeps its prior, and ``moisst-calibrate``
-    holds it there.
+    holds it there. ``readout_time`` is the rolling-shutter readout the camera's projections used (rig.json's, or with
+    ``estimate_readout`` the estimate when the drive determines it: ``readout_estimate``, ``readout_sigma``,
+    ``readout_note``), seconds.
     """
     before = calibration_report_errors(start, truth) if truth else {}
     after = calibration_report_errors(result.calibration, truth) if truth else {}
@@ -47,7 +49,9 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                  "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history,
                  "typical_error_significance": [_finite(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None,
                  "blind": [p for p in PARAMETERS if p in r.blind],
-                 "held_there": r.held_there,
+                 "held_there": r.held_there, "readout_time": r.readout_time, "prior_readout_time": r.readout_prior,
+                 **({"readout_estimate": r.readout_estimate, "readout_sigma": _finite(r.readout_sigma), "readout_note": r.readout_note}
+                    if r.readout_estimate is not None else {}),
                  **parts}
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
@@ -74,6 +78,10 @@ def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationCon
                f"estimate{' (prior kept)' if s['kept_prior'] else ''}.", "",
                "| | " + " | ".join(PARAMETERS) + " |", "|---|" + "---|" * len(PARAMETERS),
                "| sigma | " + " | ".join("inf" if v is None else f"{v * u:.3g} {unit}" for v, (u, unit) in zip(s["sigma"], UNITS)) + " |", ""]
+        if "readout_estimate" in s:
+            sigma = "inf" if s["readout_sigma"] is None else f"{s['readout_sigma'] * 1000:.2f} ms"
+            md += [f"Rolling-shutter readout: estimated {s['readout_estimate'] * 1000:.2f} ms (sigma {sigma}) from rig.json's "
+                   f"{s['prior_readout_time'] * 1000:g} ms; used {s['readout_time'] * 1000:.2f} ms{'; ' + s['readout_note'] if s['readout_note'] else ''}.", ""]
         if truth:
             b, a = s["errors_before"], s["errors_after"]
             md += ["| | translation (cm) | rotation (deg) | time (ms) |", "|---|---|---|---|",

@@ -25,7 +25,7 @@ from jaxtyping import Float
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
 from moisst_ns.stages.camera_map import _camera_matrix, _distortion
 from moisst_ns.stages.lidar_map import PinholeModel, project, visible, world_to_camera
 from moisst_ns.stages.photometric import CameraFrames, CameraModel
@@ -82,7 +82,8 @@ def _sift(image: np.ndarray, features: int) -> Tuple[np.ndarray, Optional[np.nda
 
 
 def reference_landmarks(world: Float[np.ndarray, "num 3"], pose: Float[np.ndarray, "4 4"], image: np.ndarray, model: PinholeModel,
-                        features: int, max_depth: float = 40.0, max_depth_spread: float = 0.05) -> Tuple[Float[np.ndarray, "k 3"], Optional[np.ndarray]]:
+                        features: int, max_depth: float = 40.0, max_depth_spread: float = 0.05,
+                        projected: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Tuple[Float[np.ndarray, "k 3"], Optional[np.ndarray]]:
     """The reference frame's SIFT keypoints that land on the map, as world points with their descriptors.
 
     Args:
@@ -94,6 +95,8 @@ def reference_landmarks(world: Float[np.ndarray, "num 3"], pose: Float[np.ndarra
         max_depth: map points farther than this are not used, metres.
         max_depth_spread: a keypoint whose 3x3 pixels hold map points whose depths differ by more than this fraction
             sits on a depth edge (its 3D point is ambiguous) and is dropped.
+        projected: the map's pixels and depths in this frame when already known (a rolling-shutter camera: each point
+            from its row's pose, ``CameraModel.project``); None: projected from ``pose``.
 
     Returns:
         (world points of the keypoints: the nearest visible map point within the keypoint's 3x3 pixels; their
@@ -102,9 +105,11 @@ def reference_landmarks(world: Float[np.ndarray, "num 3"], pose: Float[np.ndarra
     uv_kp, descriptors = _sift(image, features)
     if descriptors is None or not len(uv_kp):
         return np.zeros((0, 3)), None
-    pose_t = torch.from_numpy(np.asarray(pose, dtype=np.float64))[None].expand(len(world), 4, 4)
-    uv, depth = project(model, world_to_camera(pose_t, torch.from_numpy(world)))
-    uv, depth = uv.numpy(), depth.numpy()
+    if projected is None:
+        pose_t = torch.from_numpy(np.asarray(pose, dtype=np.float64))[None].expand(len(world), 4, 4)
+        uv, depth = (a.numpy() for a in project(model, world_to_camera(pose_t, torch.from_numpy(world))))
+    else:
+        uv, depth = projected
     seen = np.flatnonzero(visible(uv, depth, model, 4, 0.3, 0.03, max_depth))
     w, h = model.width, model.height
     nearest = np.full(w * h, -1, dtype=np.int64)
@@ -146,16 +151,19 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
     import cv2
 
     name = camera.sensor
-    ref_model = CameraModel(traj, reference_pose, reference_offset, reference.stamps)
+    ref_model = CameraModel(traj, reference_pose, reference_offset, reference.stamps, reference.readout, reference.model)
     ref_poses = ref_model.poses(torch.zeros(7, dtype=torch.float64)).numpy()
     ref_images = reference.levels[1].intensity
     landmarks: List[Tuple[np.ndarray, Optional[np.ndarray]]] = [
-        reference_landmarks(world, ref_poses[j], ref_images[j], reference.model, config.features) for j in range(len(ref_poses))]
+        reference_landmarks(world, ref_poses[j], ref_images[j], reference.model, config.features,
+                            projected=ref_model.project(np.zeros(7), reference.model, world, np.full(len(world), j)) if reference.readout else None)
+        for j in range(len(ref_poses))]
     K, dist = _camera_matrix(intrinsics), _distortion(intrinsics)
     threshold = max(1.5, config.ransac_fraction * camera.model.width)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
-    model = CameraModel(traj, prior, prior_offset, camera.stamps)
+    model = CameraModel(traj, prior, prior_offset, camera.stamps, camera.readout, camera.model)
     base = traj(torch.from_numpy(camera.stamps + prior_offset)).numpy()  # world_T_ref at each frame (prior offset)
+    height = camera.model.height
     points, frames, observed, local = [], [], [], []
     for i, image in enumerate(camera.levels[1].intensity):
         near = [j for j in range(len(ref_poses)) if abs(reference.stamps[j] + reference_offset - camera.stamps[i] - prior_offset) <= config.window_s
@@ -172,8 +180,13 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
                 frames.append(np.full(len(good), i))
                 # the same points in the vehicle frame at this frame's time (prior offset): every frame's matches then
                 # share one unknown pose, ref_T_c (an offset error moves them all about alike: a lever-arm error)
-                inv = np.linalg.inv(base[i])
-                local.append(world_pts @ inv[:3, :3].T + inv[:3, 3])
+                if camera.readout:  # each match at its observed row's time
+                    rows = row_time(observed[-1][:, 1], camera.readout, height)
+                    inv = np.linalg.inv(traj(torch.from_numpy(camera.stamps[i] + prior_offset + rows)).numpy())
+                    local.append(np.einsum("nij,nj->ni", inv[:, :3, :3], world_pts) + inv[:, :3, 3])
+                else:
+                    inv = np.linalg.inv(base[i])
+                    local.append(world_pts @ inv[:3, :3].T + inv[:3, 3])
     if not points or len(np.unique(np.concatenate(frames))) < config.min_frames:
         return FeatureStart(None, len(np.unique(np.concatenate(frames))) if frames else 0, 0, float("nan"),
                             f"too few frames match the reference camera's features (the start needs {config.min_frames}): starting from the prior")

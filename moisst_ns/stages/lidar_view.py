@@ -28,6 +28,7 @@ import torch
 from jaxtyping import Float, Int
 
 from moisst_ns.rig.format import Rig
+from moisst_ns.rig.geometry import row_times
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points, placement_jacobian
 from moisst_ns.stages.lidar_map import CameraStageError, ImageStack, PinholeModel, bilinear, project, visible
 
@@ -58,6 +59,25 @@ class ReferenceView:
     """``world_T_ref`` of every frame (eq. 1 at its stamp)."""
     distance: ImageStack
     """Distance to the nearest edge (pixels, capped at ``MAX_DISTANCE``) and its gradient, full resolution."""
+    readout: float = 0.0
+    """The camera's rolling-shutter readout time, seconds (0: global shutter: every point seen from ``poses``)."""
+
+
+def reference_camera(traj: Trajectory, view: ReferenceView, frame: Int[np.ndarray, "num"], world: Float[np.ndarray, "num 3"]):
+    """World points in their reference frames' camera frame, each from the pose at its row's time (a rolling shutter:
+    ``geometry.row_times``; the reference camera's pose is eq. 1 itself).
+
+    Returns:
+        (camera-frame points, metres; and at each point's time: ``world_R_ref``, ``world_t_ref``, body angular rate
+        (rad/s), velocity (m/s) (``Trajectory.pose_and_rates``))
+    """
+    def at(tau):
+        rot, pos, omega, vel = traj.pose_and_rates(view.stamps[frame] + tau)
+        return np.einsum("nji,nj->ni", rot, world - pos), rot, pos, omega, vel
+
+    model = view.distance.model
+    tau = row_times(lambda t: project(model, torch.from_numpy(at(t)[0]))[0][:, 1].numpy(), view.readout, model.height)
+    return at(tau)
 
 
 def edge_distance(grey: Float[np.ndarray, "h w"]) -> Float[np.ndarray, "h w"]:
@@ -99,7 +119,8 @@ def reference_view(rig: Rig, traj: Trajectory) -> "ReferenceView | None":
     rot, pos, _, _ = traj.pose_and_rates(stamps)
     poses = np.tile(np.eye(4), (len(stamps), 1, 1))
     poses[:, :3, :3], poses[:, :3, 3] = rot, pos
-    return ReferenceView(ref, stamps, poses, ImageStack(distance, np.stack([gx, gy], axis=1).astype(np.float32), PinholeModel.of(intr)))
+    return ReferenceView(ref, stamps, poses, ImageStack(distance, np.stack([gx, gy], axis=1).astype(np.float32), PinholeModel.of(intr)),
+                         float(rig.sensors[ref].readout_time))
 
 
 def depth_edges(points: Float[np.ndarray, "num 3"]) -> Int[np.ndarray, "edges"]:
@@ -150,7 +171,7 @@ def view_rows(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView, edge
     Returns:
         The rows (empty when no frame sees any edge point).
     """
-    from moisst_ns.stages.camera_registration import CameraRegistrationConfig  # its z-buffer settings, one place
+    from moisst_ns.stages.camera_config import CameraRegistrationConfig  # its z-buffer settings, one place
 
     c = CameraRegistrationConfig()
     points, frames = [], []
@@ -162,7 +183,10 @@ def view_rows(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView, edge
             continue
         part = scans.scan(int(k))
         world = place_points(traj, ext, scans.points[part], scans.times[part])
-        cam = (world - view.poses[a, :3, 3]) @ view.poses[a, :3, :3]
+        if view.readout:
+            cam = reference_camera(traj, view, np.full(len(world), a), world)[0]
+        else:
+            cam = (world - view.poses[a, :3, 3]) @ view.poses[a, :3, :3]
         uv, z = (t.numpy() for t in project(model, torch.from_numpy(cam)))
         seen = visible(uv, z, model, c.zbuffer_cell, c.occlusion_margin_m, c.occlusion_margin_fraction, c.max_depth) & (z > MIN_DEPTH)
         keep = edges[k][seen[edges[k]]]
@@ -176,13 +200,20 @@ def view_residuals(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView,
                    increment: Float[np.ndarray, "7"]) -> Tuple[Float[np.ndarray, "rows"], Float[np.ndarray, "rows 7"]]:
     """Distance (pixels) from each row's projection at ``ext.updated(increment)`` to the nearest image edge, and its
     Jacobian with respect to ``increment`` (pixels per radian / metre / second). A projection that leaves the image
-    reads the border (gradient 0 across it): scoring it otherwise made fits gain by pushing points out of the image."""
+    reads the border (gradient 0 across it): scoring it otherwise made fits gain by pushing points out of the image.
+    With a rolling shutter each point is seen from its row's pose, and the row moves with the point: at the fixed
+    point ``tau = g(v)``, ``dtau/dx = g' dv/dx / (1 - g' dv/dtau)`` joins the projection's derivative."""
     cur = ext.updated(increment)
     points, times = scans.points[rows.point], scans.times[rows.point]
     world = place_points(traj, cur, points, times)
     stack = view.distance
-    poses = torch.from_numpy(view.poses[rows.frame])
-    cam = torch.einsum("nji,nj->ni", poses[:, :3, :3], torch.from_numpy(world) - poses[:, :3, 3]).requires_grad_(True)
+    if view.readout:
+        cam_np, rot, _, omega, vel = reference_camera(traj, view, rows.frame, world)
+        cam = torch.from_numpy(cam_np).requires_grad_(True)
+    else:
+        poses = torch.from_numpy(view.poses[rows.frame])
+        cam = torch.einsum("nji,nj->ni", poses[:, :3, :3], torch.from_numpy(world) - poses[:, :3, 3]).requires_grad_(True)
+        rot = view.poses[rows.frame, :3, :3]
     uv, _ = project(stack.model, cam)
     du = torch.autograd.grad(uv[:, 0].sum(), cam, retain_graph=True)[0].numpy()
     dv = torch.autograd.grad(uv[:, 1].sum(), cam)[0].numpy()
@@ -191,7 +222,13 @@ def view_residuals(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView,
     clamped = np.clip(np.nan_to_num(raw, nan=0.5), 0.5, limit)
     value, grad, _ = bilinear(stack, rows.frame, clamped)
     grad = np.where(clamped == raw, grad, 0.0)
-    direction = np.einsum("nij,nj->ni", view.poses[rows.frame, :3, :3], grad[:, :1] * du + grad[:, 1:] * dv)
+    direction = np.einsum("nij,nj->ni", rot, grad[:, :1] * du + grad[:, 1:] * dv)
+    if view.readout:  # the row's time follows the point: d cam / d tau = -omega x cam - R^T velocity
+        cam_tau = -np.cross(omega, cam_np) - np.einsum("nji,nj->ni", rot, vel)
+        u_tau, v_tau = np.einsum("ni,ni->n", du, cam_tau), np.einsum("ni,ni->n", dv, cam_tau)
+        g_v = view.readout / max(stack.model.height - 1, 1)
+        tau_x = g_v * np.einsum("nij,nj->ni", rot, dv) / (1.0 - g_v * v_tau)[:, None]
+        direction += (grad[:, 0] * u_tau + grad[:, 1] * v_tau)[:, None] * tau_x
     _, jac = placement_jacobian(traj, ext, increment, points, times, direction)
     return value, jac
 

@@ -71,3 +71,26 @@ def opengl_to_opencv(c2w: Float[np.ndarray, "3 4"], world: Float[np.ndarray, "nu
     """
     cam = (world - c2w[:, 3]) @ c2w[:, :3]  # R^T (x - t), OpenGL axes
     return cam * np.array([1.0, -1.0, -1.0])
+
+
+def rolling_camera_points(rig, frame: int, readout: float, world: Float[np.ndarray, "num 3"]) -> Float[np.ndarray, "num 3"]:
+    """Points of the world in a rolling-shutter camera frame, each from the camera's prior pose at its row's time
+    (``photometric.CameraModel.camera_points``), in the model's units (the frame's ``opengl_to_opencv`` points of a
+    global shutter).
+
+    Args:
+        rig: the dataparser's ``RigData`` (trajectory, priors, training frames, world frame).
+        frame: the training frame's index.
+        readout: its camera's readout time, seconds.
+        world: points, metric world frame.
+
+    Returns:
+        The points in the frame's OpenCV camera frame, model units.
+    """
+    from moisst_ns.stages.lidar_map import PinholeModel
+    from moisst_ns.stages.photometric import CameraModel
+
+    sensor = int(rig.frame_sensor_index[frame])
+    camera = CameraModel(rig.trajectory(), rig.prior_extrinsics[sensor], float(rig.prior_time_offsets[sensor]), rig.frame_stamps[frame:frame + 1],
+                         readout, PinholeModel.of(rig.rig.sensors[rig.sensor_names[sensor]].intrinsics))
+    return camera.camera_points(np.zeros(7), world, np.zeros(len(world), dtype=np.int64)) * float(rig.world.scale)

@@ -12,7 +12,8 @@ import torch
 from jaxtyping import Float, Int
 
 from moisst_ns.rig.format import Calibration
-from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, sensor_pose
+from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, row_time, row_times, sensor_pose
+from moisst_ns.stages.lidar_geometry import right_jacobian
 from moisst_ns.stages.lidar_map import ImageStack, PinholeModel, bilinear, project, visible, world_to_camera
 
 
@@ -25,6 +26,8 @@ class CameraFrames:
     levels: Dict[int, ImageStack]
     model: PinholeModel
     """Full-resolution intrinsics."""
+    readout: float = 0.0
+    """Rolling-shutter readout time, seconds (rig.json's ``readout_time``; 0: global shutter)."""
 
 
 PIXEL_CHUNK = 65536
@@ -32,30 +35,124 @@ PIXEL_CHUNK = 65536
 
 
 class CameraModel:
-    """``theta -> pixel`` of map points in a camera's frames (eq. 1, 2, 12), and its Jacobian (forward mode)."""
+    """``theta -> pixel`` of map points in a camera's frames (eq. 1, 2, 12), and its Jacobian (forward mode; analytic
+    with a rolling shutter, ``_rolling``).
+
+    ``theta``: the 7 corrections (rotation vector, translation, time offset), or 8 with a readout-time correction
+    (seconds, added to ``readout``). With a readout (or 8 corrections) a point is projected from the pose at its row's
+    time (``geometry.row_times``, ``row_time``), and the Jacobian follows the row: with ``u = f(theta, tau)`` and
+    ``tau = g(v, theta)`` at the fixed point, ``dtau/dtheta = (g_v df_v/dtheta + dg/dtheta) / (1 - g_v df_v/dtau)``
+    (implicit differentiation) and ``du/dtheta = df/dtheta + df/dtau dtau/dtheta``."""
 
     def __init__(self, traj: ReferenceTrajectory, prior: Float[np.ndarray, "4 4"], prior_offset: float,
-                 stamps: Float[np.ndarray, "frames"]):
+                 stamps: Float[np.ndarray, "frames"], readout: float = 0.0, full: Optional[PinholeModel] = None):
+        """``readout``: rolling-shutter readout time, seconds; ``full``: the full-resolution intrinsics (required with a
+        readout: rows are timed in the stored image's pixels)."""
         self.traj, self.prior_offset = traj, prior_offset
         self.prior = torch.from_numpy(np.asarray(prior, dtype=np.float64))
         self.stamps = torch.from_numpy(np.asarray(stamps, dtype=np.float64))
+        self.readout, self.full = float(readout), full
+        self._ends: Dict[tuple, list] = {}
 
     def poses(self, theta: Float[torch.Tensor, "7"]) -> Float[torch.Tensor, "frames 4 4"]:
-        """``world_T_c`` of every frame: ``T_r(s_k + delta_prior + d) @ ref_T_c(w, v)``."""
+        """``world_T_c`` of every frame at its stamp: ``T_r(s_k + delta_prior + d) @ ref_T_c(w, v)``."""
         ext = calibrated_extrinsic(self.prior, theta[:3], theta[3:6])
         return sensor_pose(self.traj(self.stamps + self.prior_offset + theta[6]), ext)
 
-    def pixels(self, theta: Float[np.ndarray, "7"], model: PinholeModel, points: Float[np.ndarray, "num 3"],
-               frame: Int[np.ndarray, "num"], jacobian: bool) -> Tuple[Float[np.ndarray, "num 2"], Optional[Float[np.ndarray, "num 2 7"]]]:
+    def _seen(self, theta: torch.Tensor, points: torch.Tensor, frame: torch.Tensor, tau: torch.Tensor):
+        """Each point from its frame's pose ``tau`` seconds after the stamp: ``(t, world_T_ref, q = ref_T_world x,
+        camera-frame point, ref_T_c)`` (reference-clock time, eq. 1-2 and 12 per point)."""
+        ext = calibrated_extrinsic(self.prior, theta[:3], theta[3:6])
+        t = self.stamps[frame] + self.prior_offset + theta[6] + tau
+        ref = self.traj(t, cached=True)
+        q = torch.einsum("nji,nj->ni", ref[:, :3, :3], points - ref[:, :3, 3])
+        return t, ref, q, (q - ext[:3, 3]) @ ext[:3, :3], ext
+
+    def camera_points(self, theta: Float[np.ndarray, "p"], points: Float[np.ndarray, "num 3"], frame: Int[np.ndarray, "num"]) -> Float[np.ndarray, "num 3"]:
+        """``points`` (world, metres) in the camera frame of the pose that sees each (its row's with a readout)."""
+        th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
+        pts, idx = torch.from_numpy(np.asarray(points, dtype=np.float64)), torch.from_numpy(np.asarray(frame))
+        with torch.no_grad():
+            return self._seen(th, pts, idx, self.row_times(th, self.full, pts, idx))[3].numpy()
+
+    def row_times(self, theta: torch.Tensor, model: PinholeModel, points: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+        """Each point's capture time after its frame's stamp (seconds; ``geometry.row_times``), projected at ``model``'s
+        level (its rows are timed in the full-resolution image's). The iterations move each point along the chord
+        between its frame's poses at the first and the last row (two trajectory evaluations per frame, none per point):
+        within a readout the chord is the pose to a fraction of a millimetre (constant velocity within a trajectory
+        segment), and the caller projects exactly from the pose at the time found."""
+        full = self.full if self.full is not None else model
+        readout = float(self.readout + (theta[7] if len(theta) > 7 else 0.0))
+        if readout == 0.0:
+            return torch.zeros(len(points), dtype=torch.float64)
+        key = (theta.numpy().tobytes(), readout)
+        if key not in self._ends:  # the frames' poses at their first and last rows, kept for the last theta
+            ext, t = calibrated_extrinsic(self.prior, theta[:3], theta[3:6]), self.stamps + self.prior_offset + theta[6]
+            self._ends = {key: [sensor_pose(self.traj(t + h), ext) for h in (-readout / 2, readout / 2)]}
+        first, last = (world_to_camera(pose[frame], points) for pose in self._ends[key])
+
+        def rows(tau):
+            cam = first + (torch.as_tensor(tau, dtype=torch.float64).expand(len(points)) / readout + 0.5)[:, None] * (last - first)
+            return full.cy + (project(model, cam)[0][:, 1] - model.cy) * (full.fy / model.fy)
+
+        return row_times(rows, readout, full.height)
+
+    def _rolling(self, theta: torch.Tensor, model: PinholeModel, points: torch.Tensor, frame: torch.Tensor, jacobian: bool):
+        """``(pixels, depths, d pixel / d theta or None)`` of one chunk with the rows at their own times. The derivative
+        of the camera-frame point ``c = R_E^T (q - t_E)``, ``q = R_r^T (x - p_r)`` (eq. 1-2, 12 at the row's time ``t``):
+        ``dc/dt = -R_E^T (omega x q + R_r^T velocity)`` (the segment's rates, ``ReferenceTrajectory.rates``),
+        ``dc/dw = [c]x J_r(w)``, ``dc/dv = -R_E^T``; times the projection's (forward mode, 3 tangents)."""
+        full = self.full if self.full is not None else model
+        scale = full.fy / model.fy  # full-resolution rows per row of ``model``'s level
+        readout = self.readout + (theta[7] if len(theta) > 7 else 0.0)
+        t, ref, q, cam, ext = self._seen(theta, points, frame, self.row_times(theta, model, points, frame))
+        uv, depth = project(model, cam)
+        if not jacobian:
+            return uv, depth, None
+        omega, velocity = self.traj.rates(t)
+        d_time = -(torch.cross(omega, q, dim=-1) + torch.einsum("nji,nj->ni", ref[:, :3, :3], velocity)) @ ext[:3, :3]
+        d_rot = torch.cross(cam[:, :, None].expand(-1, -1, 3), torch.from_numpy(right_jacobian(theta[:3].numpy()))[None].expand(len(cam), 3, 3), dim=1)
+        d_cam = torch.cat([d_rot, -ext[:3, :3].T.expand(len(cam), 3, 3), d_time[:, :, None]], dim=2)  # (n, 3, 7)
+        d_pixel = torch.stack([torch.func.jvp(lambda c: project(model, c)[0], (cam,), (torch.zeros_like(cam).index_fill_(1, torch.tensor([k]), 1.0),))[1]
+                               for k in range(3)], dim=-1)  # (n, 2, 3)
+        f_theta = torch.cat([d_pixel @ d_cam, torch.zeros(len(cam), 2, len(theta) - 7, dtype=cam.dtype)], dim=2)
+        f_tau = f_theta[..., 6]
+        g_v = readout * scale / max(full.height - 1, 1)
+        g_theta = torch.zeros_like(f_theta[:, 1])
+        if len(theta) > 7:
+            g_theta[:, 7] = row_time(full.cy + (uv[:, 1] - model.cy) * scale, 1.0, full.height)
+        dtau = (g_v * f_theta[:, 1] + g_theta) / (1.0 - g_v * f_tau[:, 1:2])
+        return uv, depth, f_theta + f_tau[..., None] * dtau[:, None, :]
+
+    def project(self, theta: Float[np.ndarray, "p"], model: PinholeModel, points: Float[np.ndarray, "num 3"],
+                frame: Int[np.ndarray, "num"]) -> Tuple[Float[np.ndarray, "num 2"], Float[np.ndarray, "num"]]:
+        """Pixels and depths (metres) of ``points`` in frames ``frame`` at ``theta``, each from its row's pose."""
+        th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
+        pts, idx = torch.from_numpy(np.asarray(points, dtype=np.float64)), torch.from_numpy(np.asarray(frame))
+        with torch.no_grad():
+            if self.readout == 0.0 and len(th) == 7:
+                return tuple(a.numpy() for a in project(model, world_to_camera(self.poses(th)[idx], pts)))
+            uv, depth, _ = self._rolling(th, model, pts, idx, False)
+        return uv.numpy(), depth.numpy()
+
+    def pixels(self, theta: Float[np.ndarray, "p"], model: PinholeModel, points: Float[np.ndarray, "num 3"],
+               frame: Int[np.ndarray, "num"], jacobian: bool) -> Tuple[Float[np.ndarray, "num 2"], Optional[Float[np.ndarray, "num 2 p"]]]:
         """Pixels of ``points`` in frames ``frame`` at correction ``theta`` (and ``d pixel / d theta``), in chunks of
         ``PIXEL_CHUNK`` points (forward mode carries 7 tangents of every intermediate: unchunked, the finest level's
         half a million pairs took the stage's peak memory from 1.2 to 2.0 GB)."""
         th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
+        rolling = self.readout != 0.0 or len(th) > 7
         values, jacobians = [], []
         with torch.no_grad():
-            poses = self.poses(th) if not jacobian else None
+            poses = self.poses(th) if not jacobian and not rolling else None
             for lo in range(0, len(points), PIXEL_CHUNK):
                 pts, idx = torch.from_numpy(points[lo:lo + PIXEL_CHUNK]), torch.from_numpy(frame[lo:lo + PIXEL_CHUNK])
+                if rolling:
+                    uv_chunk, _, jac_chunk = self._rolling(th, model, pts, idx, jacobian)
+                    values.append(uv_chunk.numpy())
+                    if jacobian:
+                        jacobians.append(jac_chunk.numpy())
+                    continue
 
                 def uv(t):
                     return project(model, world_to_camera((self.poses(t) if poses is None else poses)[idx], pts))[0]
@@ -64,7 +161,7 @@ class CameraModel:
                 if jacobian:
                     jacobians.append(torch.func.jacfwd(uv)(th).numpy())
         if not values:
-            return np.zeros((0, 2)), (np.zeros((0, 2, 7)) if jacobian else None)
+            return np.zeros((0, 2)), (np.zeros((0, 2, len(th))) if jacobian else None)
         return np.concatenate(values), (np.concatenate(jacobians) if jacobian else None)
 
 
@@ -91,10 +188,11 @@ class Registration:
         ``config``: the stage's ``CameraRegistrationConfig``."""
         self.world, self.camera, self.reference, self.config = world, camera, reference, config
         name = camera.sensor
-        self.model = CameraModel(traj, np.asarray(prior.T_ref_sensor[name]), float(prior.time_offset[name]), camera.stamps)
+        self.model = CameraModel(traj, np.asarray(prior.T_ref_sensor[name]), float(prior.time_offset[name]), camera.stamps, camera.readout, camera.model)
         if reference is not None:
             ref_name = reference.sensor
-            self.ref_model = CameraModel(traj, np.asarray(prior.T_ref_sensor[ref_name]), float(prior.time_offset[ref_name]), reference.stamps)
+            self.ref_model = CameraModel(traj, np.asarray(prior.T_ref_sensor[ref_name]), float(prior.time_offset[ref_name]), reference.stamps,
+                                         reference.readout, reference.model)
             ref_poses = self.ref_model.poses(torch.zeros(7, dtype=torch.float64)).numpy()
             self.ref_visible = np.stack([self._visible(ref_poses[j], reference.model) for j in range(len(reference.stamps))])
         self.rng = np.random.default_rng(config.seed)
