@@ -12,3 +12,27 @@ def tree_hash(folder: Path) -> str:
             digest.update(str(path.relative_to(folder)).encode())
             digest.update(path.read_bytes())
     return digest.hexdigest()
+
+
+def file_hashes(root: Path) -> dict:
+    """sha256 of every file under ``root``, by relative path (to prove two outputs byte-identical)."""
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def planar_distance_view(view):
+    """``view`` (a ``lidar_view.ReferenceView``) with each frame's distance map replaced by a plane
+    ``a_f x + b_f y + 5`` (slopes differing per frame) and its exact gradient: bilinear interpolation is then exact,
+    so a residual Jacobian can be checked against finite differences without the map's kinks."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from moisst_ns.stages.lidar_map import ImageStack
+
+    stack = view.distance
+    frames, h, w = stack.intensity.shape
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    a, b = np.linspace(0.3, 1.1, frames), np.linspace(-0.7, 0.5, frames)
+    planes = np.stack([a[f] * x + b[f] * y + 5.0 for f in range(frames)])
+    gradient = np.stack([np.stack([np.full_like(x, a[f]), np.full_like(x, b[f])]) for f in range(frames)])
+    return replace(view, distance=ImageStack(planes, gradient, stack.model))

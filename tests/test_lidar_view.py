@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import re
 import shutil
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +26,9 @@ from moisst_ns.stages.lidar_first import (
     scan_pairs,
 )
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory
-from moisst_ns.stages.lidar_map import CameraStageError, ImageStack
+from moisst_ns.stages.lidar_map import CameraStageError
 from moisst_ns.stages.lidar_view import JUMP, MAX_DISTANCE, NEIGHBOUR_DEG, depth_edges, edge_distance, view_residuals
+from helpers import planar_distance_view
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti-raw-2011_09_26_drive_0048"
 DRIVE = "2011_09_26_drive_0048_sync"
@@ -182,14 +182,9 @@ def test_view_jacobian_is_exact_on_linear_distance_maps(synth):
     exact, a different plane per frame), the Jacobian equals central differences to 1e-5 of its size at a non-zero
     increment: the chain rule (pose, projection, eq. 1-2's placement, the time offset) is right."""
     traj, ext, scans, shared = synth["traj"], synth["ext"], synth["scans"], synth["shared"]
-    rows, stack = shared.rows, shared.view.distance
+    rows = shared.rows
     assert len(rows.point) > 100 and len(np.unique(rows.frame)) >= 5
-    frames, h, w = stack.intensity.shape
-    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
-    a, b = np.linspace(0.3, 1.1, frames), np.linspace(-0.7, 0.5, frames)
-    planes = np.stack([a[f] * x + b[f] * y + 5.0 for f in range(frames)])
-    gradient = np.stack([np.stack([np.full_like(x, a[f]), np.full_like(x, b[f])]) for f in range(frames)])
-    view = replace(shared.view, distance=ImageStack(planes, gradient, stack.model))
+    view = planar_distance_view(shared.view)
     increment = np.array([0.002, -0.001, 0.003, 0.02, -0.01, 0.03, 0.004])
     value, jac = view_residuals(traj, ext, scans, view, rows, increment)
     fd = central_differences(traj, ext, scans, view, rows, increment, np.full(7, 1e-6))

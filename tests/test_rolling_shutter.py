@@ -15,8 +15,9 @@ from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_time, row_times
 from moisst_ns.stages.camera_registration import CameraRegistrationConfig, register_cameras
-from moisst_ns.stages.lidar_map import ImageStack, PinholeModel
+from moisst_ns.stages.lidar_map import PinholeModel
 from moisst_ns.stages.photometric import CameraModel
+from helpers import planar_distance_view
 
 READOUT = 0.03
 
@@ -124,14 +125,9 @@ def test_shared_view_projects_lidar_edges_from_the_rows_pose_with_an_exact_jacob
     shared = SharedView.of(rig, traj, scans)
     assert shared.view.readout == READOUT
     shared = shared.at(traj, ext, scans, pairs, consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0])
-    rows, stack = shared.rows, shared.view.distance
+    rows = shared.rows
     assert len(rows.point) >= 10 and len(np.unique(rows.frame)) >= 5
-    frames, h, w = stack.intensity.shape
-    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
-    a, b = np.linspace(0.3, 1.1, frames), np.linspace(-0.7, 0.5, frames)
-    planes = np.stack([a[f] * x + b[f] * y + 5.0 for f in range(frames)])
-    gradient = np.stack([np.stack([np.full_like(x, a[f]), np.full_like(x, b[f])]) for f in range(frames)])
-    view = replace(shared.view, distance=ImageStack(planes, gradient, stack.model))
+    view = planar_distance_view(shared.view)
     increment = np.array([0.002, -0.001, 0.003, 0.02, -0.01, 0.03, 0.004])
     value, jac = view_residuals(traj, ext, scans, view, rows, increment)
     numeric = []

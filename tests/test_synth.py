@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import itertools
 from pathlib import Path
 
@@ -27,16 +26,13 @@ from moisst_ns.datasets.synth import (
     reference_trajectory_samples,
     render_camera,
 )
+from helpers import file_hashes
 
 TINY = dict(width=64, height=48, frames=8, lidar_azimuth_steps=512, lidar_max_points=6000)
 
 
 def tiny(out: Path, **kw) -> SynthConfig:
     return SynthConfig(out=out, **{**TINY, **kw})
-
-
-def file_hashes(root: Path) -> dict:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,6 @@ effect's rig has the seed of the plain one, so the two differ by that effect alo
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -48,6 +47,7 @@ from moisst_ns.datasets.synth_render import render_frame
 from moisst_ns.datasets.synth_truth import config_of_rig
 from moisst_ns.rig.format import RigFormatError, load_calibration, load_lidar_scan, load_rig, rig_to_json
 from moisst_ns.rig.geometry import ReferenceTrajectory, sensor_pose
+from helpers import file_hashes
 
 TINY = dict(width=64, height=48, frames=5, lidar_azimuth_steps=512, lidar_max_points=6000)
 CAMERAS = ("cam_front", "cam_front_right", "cam_left")
@@ -55,10 +55,6 @@ CAMERAS = ("cam_front", "cam_front_right", "cam_left")
 
 def tiny(out: Path, **kw) -> SynthConfig:
     return SynthConfig(out=out, **{**TINY, **kw})
-
-
-def file_hashes(root: Path) -> dict:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture(scope="module")
