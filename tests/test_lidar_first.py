@@ -403,11 +403,11 @@ def test_split_half_sigma_covers_a_short_drive_the_formal_sigma_does_not(tiny_ri
 
 
 
-def test_a_straight_drive_holds_what_its_halves_disagree_on(tmp_path):
-    """On a straight drive at constant speed the along-track lever arm, the vertical one and delta are not determined:
-    fitted free they run off (x 3.4 m from the truth on this rig); the halves of the drive disagree on them by more
-    than 2 typical prior errors, so they are held at the prior (exactly), the release fit's move is their sigma and
-    covers their error, no disagreement is raised for them, and the LiDAR ends no farther from the truth than its
+def test_a_straight_drive_keeps_at_the_prior_what_it_does_not_determine(tmp_path):
+    """On a straight drive at constant speed the lever arm and delta are not determined (flagged weak); the prior
+    (``prior_sigma``) keeps them at rig.json's values instead of letting them run off along the flat direction (the
+    along-track lever arm ran 3.4 m off with open3d 0.19 and 16 m with 0.20 before it), while pitch and yaw, which
+    the drive does determine, move from 4.8 deg to under 0.06 deg; the LiDAR ends no farther from the truth than its
     prior in translation, rotation and time."""
     from moisst_ns.rig.trust import parameter_difference
     from moisst_ns.stages.lidar_first import calibrate_lidar
@@ -415,13 +415,32 @@ def test_a_straight_drive_holds_what_its_halves_disagree_on(tmp_path):
     rig = load_rig(make_rig(SynthConfig(out=tmp_path / "straight", seed=3, perturb="paper", drive="straight", **TINY)))
     truth = load_calibration(rig.root / "ground_truth.json")
     result = calibrate_lidar(rig, "lidar", LidarFirstConfig(), log=lambda s: None)
-    check = result.held_check
-    assert check is not None and {"x", "time_offset"} <= set(check["held"]) and not check["note"], check
+    weak = {d.name for d in result.observability.dofs if d.weak}
+    assert {"x", "time_offset"} <= weak, weak
     from_prior = parameter_difference(result.prior.matrix(), result.prior.time_offset, result.estimate.matrix(), result.estimate.time_offset)
-    assert all(abs(c) < 1e-12 for p, c in zip(PARAMETERS, from_prior) if p in check["held"]), (check["held"], from_prior)
-    error = np.abs(parameter_difference(truth.T_ref_sensor["lidar"], truth.time_offset["lidar"], result.estimate.matrix(), result.estimate.time_offset))
-    sigma = np.fmax.reduce([[d.sigma for d in result.observability.dofs], result.sigma_split, check["sigma_release"]])
-    assert all(e <= 3 * s for p, e, s in zip(PARAMETERS, error, sigma) if p in check["held"]), (error, sigma)
+    assert all(abs(c) < 1e-4 for p, c in zip(PARAMETERS, from_prior) if p in ("x", "y", "z", "time_offset")), from_prior
+    before = parameter_difference(truth.T_ref_sensor["lidar"], truth.time_offset["lidar"], result.prior.matrix(), result.prior.time_offset)
+    error = parameter_difference(truth.T_ref_sensor["lidar"], truth.time_offset["lidar"], result.estimate.matrix(), result.estimate.time_offset)
+    for name in ("pitch", "yaw"):
+        k = PARAMETERS.index(name)
+        assert abs(before[k]) > 0.05 and abs(error[k]) < 1e-3, (name, before[k], error[k])
     after = calibration_report_errors_of(result, truth)
-    before = calibration_report_errors_of(dataclasses.replace(result, estimate=result.prior), truth)
-    assert all(after[k] <= before[k] + 1e-9 for k in ("translation_cm", "rotation_deg", "time_ms")), (after, before)
+    prior = calibration_report_errors_of(dataclasses.replace(result, estimate=result.prior), truth)
+    assert all(after[k] <= prior[k] + 1e-3 for k in ("translation_cm", "rotation_deg", "time_ms")), (after, prior)
+
+def test_prior_residuals_are_the_distance_to_the_prior_in_sigmas_with_an_exact_jacobian():
+    """``prior_residuals``: zero at the prior, ``(Log(R_p^T R), t - t_p, delta - delta_p) / sigma`` away from it, and a
+    Jacobian that matches central differences to 1e-8 at a rotation 20 deg from the prior."""
+    from moisst_ns.stages.lidar_geometry import Extrinsic, prior_residuals
+
+    rng = np.random.default_rng(0)
+    sigma = np.array([0.17] * 3 + [1.0] * 3 + [0.1])
+    prior = Extrinsic(rotz(30.0), np.array([0.1, -0.2, 1.5]), 0.02)
+    assert np.allclose(prior_residuals(prior, prior, np.zeros(7), sigma)[0], 0.0, atol=1e-12)
+    ext = Extrinsic(prior.rotation @ rotz(20.0), prior.translation + [0.3, 0.0, -0.1], 0.07)
+    res, jac = prior_residuals(ext, prior, np.zeros(7), sigma)
+    assert np.allclose(res * sigma, [0, 0, np.deg2rad(20.0), 0.3, 0.0, -0.1, 0.05], atol=1e-12), res * sigma
+    inc = rng.normal(0, 0.05, 7)
+    numeric = np.stack([(prior_residuals(ext, prior, inc + e, sigma)[0] - prior_residuals(ext, prior, inc - e, sigma)[0]) / 2e-6
+                        for e in np.eye(7) * 1e-6], axis=1)
+    assert np.abs(prior_residuals(ext, prior, inc, sigma)[1] - numeric).max() < 1e-8

@@ -32,7 +32,7 @@ from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
 from moisst_ns.stages.lidar_checks import release_check, split_half_spread
-from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, Trajectory, place_points, placement_jacobian, trajectory_at
+from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, Trajectory, place_points, placement_jacobian, prior_residuals, trajectory_at
 from moisst_ns.stages.lidar_map import CameraStageError
 from moisst_ns.stages.lidar_view import SharedView, view_residuals
 from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS, Observability, analyse_observability
@@ -86,6 +86,11 @@ class LidarFirstConfig:
     radius and baseline."""
     max_time_offset: float = 0.3
     """Bound on the change of delta from its prior, seconds."""
+    prior_sigma: Tuple[float, float, float] = (1.0, 0.17, 0.1)
+    """Gaussian prior at rig.json's values (metres, radians, seconds), in units of the point-to-plane residuals' robust
+    scatter (``lidar_geometry.prior_residuals``): one residual's worth per sigma beside thousands, so a parameter the
+    scans determine hardly feels it, and one they do not stays at its prior (without it a straight 20-scan drive's
+    along-track lever arm ran 16 m off with open3d 0.20, 3 m with 0.19). 0 in an entry: no prior on it."""
     max_extrapolation: float = 0.2
     """Scans with points more than this far (seconds) outside the reference trajectory's time span are dropped
     (placing them would extrapolate the trajectory's end segment too far); fewer than 3 left is an error."""
@@ -353,6 +358,9 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
         lower, upper = np.full(7, -np.inf), np.full(7, np.inf)
         lower[6], upper[6] = -config.max_time_offset - spent, config.max_time_offset - spent
         cache: Dict[bytes, Tuple[np.ndarray, np.ndarray]] = {}
+        sigma = np.repeat(np.array(config.prior_sigma, dtype=np.float64)[[1, 0, 2]], [3, 3, 1])
+        anchored = free[sigma[free] > 0]
+        scatter = 1.4826 * float(np.median(np.abs(consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0])))
 
         def evaluate(free_inc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
             key = free_inc.tobytes()
@@ -360,8 +368,10 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
                 inc = np.zeros(7)
                 inc[free] = free_inc
                 residuals, jac = joint_residuals(traj, ext, scans, corr, shared, inc, config)
+                res_p, jac_p = prior_residuals(ext, prior, inc, np.where(sigma > 0, sigma, 1.0))
                 cache.clear()
-                cache[key] = residuals, jac[:, free]
+                cache[key] = (np.concatenate([residuals, scatter * res_p[anchored]]),
+                              np.concatenate([jac, scatter * jac_p[anchored]])[:, free])
             return cache[key]
 
         solution = least_squares(lambda x: evaluate(x)[0], np.zeros(len(free)), jac=lambda x: evaluate(x)[1],
@@ -382,7 +392,7 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
         })
         h = history[-1]
         if shared is not None:
-            edge_px = np.abs(solution.fun[len(corr.src):]) / max(shared.scale, 1e-12)
+            edge_px = np.abs(solution.fun[len(corr.src):len(solution.fun) - len(anchored)]) / max(shared.scale, 1e-12)
             h.update(view_rows=int(len(edge_px)), view_median_px=float(np.median(edge_px)) if len(edge_px) else float("nan"))
         log(f"[lidar-first] {sensor} it {outer}: radius {radius:.2f} m, pairs {h['pairs']}, {h['correspondences']} corr., "
             + (f"{h['view_rows']} edge points at {h['view_median_px']:.2f} px, " if shared is not None else "")

@@ -114,6 +114,28 @@ class Extrinsic:
         return pose
 
 
+def prior_residuals(ext: Extrinsic, prior: Extrinsic, increment: Float[np.ndarray, "7"],
+                    sigma: Float[np.ndarray, "7"]) -> Tuple[Float[np.ndarray, "7"], Float[np.ndarray, "7 7"]]:
+    """How far ``ext.updated(increment)`` lies from ``prior``, per parameter in units of its prior sigma.
+
+    Args:
+        ext: the current estimate.
+        prior: rig.json's extrinsic and delta.
+        increment: ``(w, v, d)`` on ``ext`` (radians, metres, seconds; Jacobian order).
+        sigma: prior standard deviation of each parameter, same order and units.
+
+    Returns:
+        ``(Log(R_p^T R), t - t_p, delta - delta_p) / sigma`` and its exact Jacobian in ``increment``
+        (``J_r(r)^-1 J_r(w)`` for the rotation, identity for the rest, each row divided by its sigma).
+    """
+    moved = ext.updated(increment)
+    rot = roma.rotmat_to_rotvec(torch.from_numpy(prior.rotation.T @ moved.rotation)).numpy()
+    jac = np.eye(7)
+    jac[:3, :3] = np.linalg.solve(right_jacobian(rot), right_jacobian(np.asarray(increment[:3], dtype=np.float64)))
+    diff = np.concatenate([rot, moved.translation - prior.translation, [moved.time_offset - prior.time_offset]])
+    return diff / sigma, jac / sigma[:, None]
+
+
 def place_points(traj: Trajectory, ext: Extrinsic, points: Float[np.ndarray, "num 3"], times: Union[Float[np.ndarray, "num"], PointTimes]) -> Float[np.ndarray, "num 3"]:
     """Paper eq. 1-2 per point: ``x = T_r(t + delta) @ ref_T_L @ p``.
 
