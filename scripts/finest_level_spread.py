@@ -44,7 +44,7 @@ def main() -> None:
     at_truth = rig_at(rig, truth)
     config = CameraRegistrationConfig(**changes)
     world = lidar_map(at_truth, truth, config.map_voxel, config.min_range, log=lambda s: None)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     camera, reference = load_camera(at_truth, name, [1]), load_camera(at_truth, rig.reference_sensor, [1])
     for count in counts:
         estimates = []

@@ -34,7 +34,7 @@ def main() -> None:
     rig, truth = load_rig(args.rig), load_calibration(args.rig / "ground_truth.json")
     base = CameraRegistrationConfig(fine_baseline=0.0)
     world = lidar_map(rig, truth, base.map_voxel, base.min_range, lambda s: None)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     reference, camera = load_camera(rig, rig.reference_sensor, [1]), load_camera(rig, args.camera, [1])
     for baseline in (float(b) for b in args.baselines.split(",")):
         config = dataclasses.replace(base, own_baseline=baseline)

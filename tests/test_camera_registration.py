@@ -182,7 +182,7 @@ def _feature_start_of(folder, sensor="cam_front_right"):
     rig, truth, start = lidar_at_truth(folder)
     config = CameraRegistrationConfig()
     world = lidar_map(rig, start, config.map_voxel, config.min_range, log=lambda s: None)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     reference, camera = load_camera(rig, "cam_front", [1]), load_camera(rig, sensor, [1])
     prior = np.asarray(start.T_ref_sensor[sensor])
     found = feature_start(traj, world, camera, reference, np.eye(4), 0.0, prior, start.time_offset[sensor],
@@ -231,7 +231,7 @@ def test_typical_error_significance_tells_the_side_cameras_blind_directions(rig_
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig()
     world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     reference = load_camera(rig, rig.reference_sensor, [1])
     significance = {}
     for name in ("cam_front_right", "cam_left"):
@@ -269,7 +269,7 @@ def test_own_partners_are_farther_apart_at_the_finest_level(rig_folder):
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig(own_baseline=1.5, fine_baseline=3.0)
     world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     problem = Registration(traj, world, load_camera(rig, "cam_left", [1, 2]), load_camera(rig, rig.reference_sensor, [1, 2]), truth, config)
     positions = problem.model.poses(torch.zeros(7, dtype=torch.float64)).numpy()[:, :3, 3]
     steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
@@ -297,7 +297,7 @@ def test_the_finest_level_samples_enough_points_that_its_minimum_does_not_hang_o
     assert points_per_frame(config, 1, True) == config.fine_points_per_frame == 5000
     assert points_per_frame(config, 4, False) == 200 and points_per_frame(config, 2, False) == 300
     world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     camera, reference = load_camera(rig, "cam_left", [1]), load_camera(rig, rig.reference_sensor, [1])
     spread = {}
     for count in (config.points_per_frame, config.fine_points_per_frame):
@@ -323,7 +323,7 @@ def test_points_are_drawn_in_proportion_to_the_gradient_to_the_configured_power(
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     base = CameraRegistrationConfig()
     world = lidar_map(rig, truth, base.map_voxel, base.min_range, lambda s: None)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     camera = load_camera(rig, "cam_front_right", [1])
     stack = camera.levels[1]
 
@@ -357,7 +357,7 @@ def test_the_finest_level_iterates_until_the_projections_stop_moving(rig_folder)
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     base = CameraRegistrationConfig(outer_iterations=2, fine_points_per_frame=600)
     world = lidar_map(rig, truth, base.map_voxel, base.min_range, lambda s: None)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     factors = pyramid_factors(96, base.min_width)
     camera, reference = load_camera(rig, "cam_front_right", factors), load_camera(rig, rig.reference_sensor, factors)
     for stop, iterations, expected in ((np.inf, 4, 1), (0.0, 4, 4)):

@@ -243,7 +243,7 @@ def test_an_estimated_readout_is_an_8th_correction_within_its_bounds(rig_folder)
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig(estimate_readout=True, fine_iterations=1, outer_iterations=1, max_evaluations=8)
     world = lidar_map(rig, truth, config.map_voxel, config.min_range, log=lambda s: None)
-    traj = Traj.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = Traj.of(rig)
     problem = Registration(traj, world, load_camera(rig, "cam_front_right", [4, 2, 1]), load_camera(rig, "cam_front", [4, 2, 1]), truth, config)
     theta, history, _, _ = _descend(problem, config, lambda s: None, np.r_[np.zeros(7), -READOUT])  # from a readout of 0
     assert [h["level"] for h in history] == [4, 2, 1] and all(len(h["correction"]) == 8 for h in history)

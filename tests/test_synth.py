@@ -48,7 +48,7 @@ def rigs(tmp_path_factory):
 
 
 def trajectory(rig) -> ReferenceTrajectory:
-    return ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    return ReferenceTrajectory.of(rig)
 
 
 def world_T(traj: ReferenceTrajectory, stamps, ref_T_sensor: np.ndarray, delta: float) -> np.ndarray:

@@ -83,7 +83,7 @@ def scene(rigs):
 def pose_function(out: Path, sensor: str):
     """``stamps -> (N, 4, 4)`` true poses of a sensor (the rig's trajectory must be the exact one)."""
     rig, gt = load_rig(out), load_calibration(out / "ground_truth.json")
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
 
     def world_T_at(stamps):
         t_rel = torch.as_tensor(np.asarray(stamps, dtype=np.float64) + gt.time_offset[sensor]) - traj.t0

@@ -97,6 +97,11 @@ class ReferenceTrajectory:
             t0=t0,
         )
 
+    @classmethod
+    def of(cls, rig) -> "ReferenceTrajectory":
+        """The trajectory of a loaded ``rig.format.Rig`` (its TUM file's columns), ``t0`` its first stamp."""
+        return cls.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+
     def __call__(self, t: Float[Tensor, "*batch"], cached: bool = False) -> Float[Tensor, "*batch 4 4"]:
         """``T_r(t)``, paper eq. 1 (see ``interpolate_trajectory``); ``cached``: with each segment's relative rotation
         computed once for the trajectory (``steps``: faster for many query times, the same formula)."""

@@ -134,7 +134,7 @@ def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, lo
     if spec.type != "camera":
         raise CameraStageError(f"{rig.root / 'rig.json'}: reference_sensor: {name} is a {spec.type}; a map without a LiDAR needs a camera reference")
     frames = sorted(rig.frames_of(name), key=lambda f: f.timestamp)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     stamps = torch.tensor([f.timestamp for f in frames], dtype=torch.float64) - float(rig.trajectory_stamps[0])
     T = torch.from_numpy(np.asarray(calibration.T_ref_sensor[name], dtype=np.float64))
     poses = (traj(stamps + float(calibration.time_offset[name])) @ T).numpy()

@@ -330,7 +330,7 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         world = lidar_map(rig, calibration, config.map_voxel, config.min_range, log)
     else:  # a camera-only rig: the reference camera's features, triangulated from its known poses
         world = feature_map(rig, calibration, FeatureMapConfig(voxel=config.map_voxel), log)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     reference_name = rig.reference_sensor if rig.sensors[rig.reference_sensor].type == "camera" else None
     widths = [int(rig.sensors[n].intrinsics["w"]) for n in cameras + ([reference_name] if reference_name else [])]
     factors = pyramid_factors(min(widths), config.min_width)

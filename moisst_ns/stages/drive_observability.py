@@ -256,7 +256,7 @@ def analyse_rig_drive(rig, lidar_first: bool = True, config: DriveObservabilityC
     Returns:
         One result per non-reference sensor, in rig order.
     """
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     out = []
     for name, spec in rig.sensors.items():
         if name == rig.reference_sensor:

@@ -35,7 +35,7 @@ from moisst_ns.stages.lidar_checks import release_check, split_half_spread
 from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, Trajectory, place_points, placement_jacobian, prior_residuals, trajectory_at
 from moisst_ns.stages.lidar_map import CameraStageError
 from moisst_ns.stages.lidar_view import SharedView, view_residuals
-from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS, Observability, analyse_observability
+from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS, Observability, analyse_observability, huber_weights
 
 
 class LidarFirstError(ValueError):
@@ -87,10 +87,9 @@ class LidarFirstConfig:
     max_time_offset: float = 0.3
     """Bound on the change of delta from its prior, seconds."""
     prior_sigma: Tuple[float, float, float] = (1.0, 0.17, 0.1)
-    """Gaussian prior at rig.json's values (metres, radians, seconds), in units of the point-to-plane residuals' robust
-    scatter (``lidar_geometry.prior_residuals``): one residual's worth per sigma beside thousands, so a parameter the
-    scans determine hardly feels it, and one they do not stays at its prior (without it a straight 20-scan drive's
-    along-track lever arm ran 16 m off with open3d 0.20, 3 m with 0.19). 0 in an entry: no prior on it."""
+    """Gaussian prior at rig.json's values (m, rad, s; ``lidar_geometry.prior_residuals``, one robust residual scatter
+    per sigma): what the scans do not determine stays at the prior (a straight drive's along-track lever arm ran 16 m off
+    without it); 0: none."""
     max_extrapolation: float = 0.2
     """Scans with points more than this far (seconds) outside the reference trajectory's time span are dropped
     (placing them would extrapolate the trajectory's end segment too far); fewer than 3 left is an error."""
@@ -102,23 +101,18 @@ class LidarFirstConfig:
     """Estimate ``delta_L`` (off: held at the prior, as in the paper's spatial-only Table I)."""
     release_check: bool = True
     """With a parameter held: fit once more with every parameter free and report which held values the scans disagree
-    with (``release_check``; one more coarse-to-fine fit). Measured on the quick benchmark's street rig, delta held 100 ms
-    off: the extrinsic absorbed it, 101 cm from the truth with a formal sigma 371x too small."""
+    with (``release_check``; street rig, delta held 100 ms off: the extrinsic absorbed it, 101 cm off, sigma 371x small)."""
     split_half: bool = True
-    """Fit the first and the second half of the drive apart, from the estimate at the finest radius, and report every
-    parameter's sigma as at least half their difference (``lidar_checks.split_half_spread``; two short fits, 12 s on
-    the 320x240 street rig beside 35 s for the stage). The formal sigma treats the correspondences as independent and
-    misses what the drive does not determine: on a 6-scan drive (2 m, 2 deg of turn) the estimate was 24-48 cm off per
-    axis with formal sigmas of 1-4 cm; the halves differed by metres."""
+    """Fit the two halves of the drive apart, from the estimate, and report every parameter's sigma as at least half their
+    difference (``lidar_checks.split_half_spread``; 12 s on the 320x240 street rig beside 35 s): on a 6-scan drive the
+    estimate was 24-48 cm off per axis at formal sigmas of 1-4 cm; the halves differed by metres."""
     hold_split_half: float = 2.0
     """Parameters whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms; the camera stage's
     rule) are not determined by the drive: fitted again from the prior with them held there, their sigma is how far the
     release fit moves them; 0 never holds. KITTI raw 0048, free: 134 cm / 5.3 deg off, the halves 44-145 cm apart."""
     shared_view: bool = False
-    """Fit the scans' agreement with the reference camera's images too (``lidar_view``: a LiDAR depth edge must fall on
-    an image edge of the reference frame nearest it in time, whose pose is known), jointly with their agreement with
-    each other, each kind in units of its own scatter (``SharedView.scale``). Needs a camera reference sensor. Off:
-    from the paper prior it did not place the Velodyne of KITTI raw 0048 (docs/lab/2026-11-25-kitti-shared-view.md)."""
+    """Fit the LiDAR depth edges to the reference camera's image edges too (``lidar_view``), each kind in units of its own
+    scatter. Off: it did not place KITTI raw 0048's Velodyne (docs/lab/2026-11-25-kitti-shared-view.md)."""
 
 
 # Scans ---------------------------------------------------------------------------------------------------------
@@ -290,11 +284,6 @@ def consistency_residuals(
     return corr.weights * (ra - rb), corr.weights[:, None] * (ja - jb)
 
 
-def huber_weights(residuals: np.ndarray, scale: float) -> np.ndarray:
-    """IRLS weights of the Huber loss (1 inside ``scale``, ``scale / |r|`` beyond)."""
-    return np.minimum(1.0, scale / np.maximum(np.abs(residuals), 1e-12))
-
-
 @dataclass
 class LidarResult:
     """The LiDAR-first estimate of one LiDAR."""
@@ -358,8 +347,8 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
         lower, upper = np.full(7, -np.inf), np.full(7, np.inf)
         lower[6], upper[6] = -config.max_time_offset - spent, config.max_time_offset - spent
         cache: Dict[bytes, Tuple[np.ndarray, np.ndarray]] = {}
-        sigma = np.repeat(np.array(config.prior_sigma, dtype=np.float64)[[1, 0, 2]], [3, 3, 1])
-        anchored = free[sigma[free] > 0]
+        sigma = np.repeat(np.array(config.prior_sigma, dtype=np.float64)[[1, 0, 2]], [3, 3, 1])  # Jacobian order
+        anchored = free[sigma[free] > 0]  # the free parameters with a prior row
         scatter = 1.4826 * float(np.median(np.abs(consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0])))
 
         def evaluate(free_inc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -476,7 +465,6 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
 @dataclass
 class LidarFirstResult:
     """Every LiDAR's estimate, and the full calibration (LiDARs estimated, every other sensor at its prior)."""
-
     calibration: Calibration
     lidars: Dict[str, LidarResult]
 
@@ -494,7 +482,7 @@ def calibrate_lidars(rig: Rig, config: LidarFirstConfig, sensors: Optional[Seque
         LidarFirstError: a named sensor is not a non-reference LiDAR, or its scans cannot be used.
     """
     available = lidar_sensors(rig)
-    names = list(sensors) if sensors else available
+    names = list(sensors or available)
     for name in names:
         if name not in available:
             raise LidarFirstError(f"{rig.root / 'rig.json'}: sensors.{name}: not a non-reference LiDAR of this rig (LiDARs: {available or 'none'})")
@@ -502,9 +490,7 @@ def calibrate_lidars(rig: Rig, config: LidarFirstConfig, sensors: Optional[Seque
         raise LidarFirstError(f"{rig.root / 'rig.json'}: sensors: the rig has no LiDAR other than the reference sensor")
     calibration = Calibration.from_rig(rig)
     calibration.T_ref_sensor, calibration.time_offset = dict(calibration.T_ref_sensor), dict(calibration.time_offset)
-    results = {}
-    for name in names:
-        results[name] = calibrate_lidar(rig, name, config, log)
-        calibration.T_ref_sensor[name] = results[name].estimate.matrix()
-        calibration.time_offset[name] = results[name].estimate.time_offset
+    results = {name: calibrate_lidar(rig, name, config, log) for name in names}
+    for name, result in results.items():
+        calibration.T_ref_sensor[name], calibration.time_offset[name] = result.estimate.matrix(), result.estimate.time_offset
     return LidarFirstResult(calibration, results)

@@ -65,6 +65,11 @@ class Observability:
         return [d.name for d in self.dofs if d.weak]
 
 
+def huber_weights(residuals: np.ndarray, scale: float) -> np.ndarray:
+    """IRLS weights of the Huber loss (1 inside ``scale``, ``scale / |r|`` beyond)."""
+    return np.minimum(1.0, scale / np.maximum(np.abs(residuals), 1e-12))
+
+
 def marginal_information(information: Float[np.ndarray, "7 7"]) -> Float[np.ndarray, "7"]:
     """``H_ii - H_ir H_rr^+ H_ri`` for every ``i``: what is left of each parameter's information once the others
     may move (0 for a parameter the others can fully absorb)."""

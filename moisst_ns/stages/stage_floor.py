@@ -105,7 +105,7 @@ def map_depth_errors(rig: Rig, truth: Calibration, cast: RayCaster, config: Opti
     config = config or CameraRegistrationConfig()
     at_truth = rig_at(rig, truth)
     world = lidar_map(at_truth, truth, config.map_voxel, config.min_range, log=lambda s: None)
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     errors = []
     for name, spec in rig.sensors.items():
         if spec.type != "camera":

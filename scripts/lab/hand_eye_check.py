@@ -22,7 +22,7 @@ from moisst_ns.stages.observability import PARAMETERS
 def main() -> None:
     rig = load_rig(sys.argv[1])
     truth = load_calibration(rig.root / "ground_truth.json")
-    traj = ReferenceTrajectory.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
+    traj = ReferenceTrajectory.of(rig)
     config = HandEyeConfig()
     for name in sys.argv[2:] or camera_sensors(rig):
         begun = time.time()
