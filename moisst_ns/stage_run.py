@@ -34,6 +34,10 @@ class CalibrationSwitches:
     is the reference camera's triangulated features). The NeRF then holds the registered cameras there and trains the
     scene; a camera the stage could not trust keeps its prior and is calibrated by the NeRF. Off: the NeRF calibrates
     every camera."""
+    estimate_readout: bool = False
+    """The camera-registration stage also estimates each camera's rolling-shutter readout time (``CameraRegistrationConfig
+    .estimate_readout``: kept when its sigma is under 3 ms, else rig.json's is kept, as camera_registration.json says);
+    the NeRF and calibration.json keep rig.json's readout."""
     camera_refinement: bool = False
     """Let the NeRF move the registered cameras further (the paper's joint refinement) instead of holding them."""
     registration_sensors: Optional[Literal["cameras", "all"]] = None
@@ -144,7 +148,8 @@ def prepare_stages(pipeline, out: Path, seed: int, resume_from: Optional[Path]) 
     if pipeline.lidar_first:
         run.lidar = _cached("lidar_first", cache) or run_lidar_first(rig, run.prior, run.truth, out, options)
         if pipeline.camera_registration:
-            run.cameras = _cached("camera_registration", cache) or run_camera_registration(rig, run.lidar, run.truth, out, options)
+            camera_options = dict(options, estimate_readout=pipeline.estimate_readout)
+            run.cameras = _cached("camera_registration", cache) or run_camera_registration(rig, run.lidar, run.truth, out, camera_options)
     apply_stage_results(pipeline, run)
     seed_everything(seed)
     return run
