@@ -247,7 +247,7 @@ class CalibrationOptimizer(CameraOptimizer):
             if i == self.rig.data.reference_index:
                 continue
             moved_cm = float(self.rig.translation[i].norm()) * 100.0
-            turned_deg = float(np.rad2deg(self.rig.rotvec[i].norm()))
+            turned_deg = float(np.rad2deg(float(self.rig.rotvec[i].norm())))
             out.append(f"{name} delta {float(deltas[i]) * 1000:+.1f} ms, moved {moved_cm:.1f} cm / {turned_deg:.2f} deg")
         return out
 
