@@ -16,6 +16,7 @@ import torch
 from jaxtyping import Float, Int
 
 from moisst_ns.rig.format import Rig
+from moisst_ns.rig.trust import parameter_difference
 
 
 @dataclass
@@ -129,10 +130,10 @@ def prior_residuals(ext: Extrinsic, prior: Extrinsic, increment: Float[np.ndarra
         (``J_r(r)^-1 J_r(w)`` for the rotation, identity for the rest, each row divided by its sigma).
     """
     moved = ext.updated(increment)
-    rot = roma.rotmat_to_rotvec(torch.from_numpy(prior.rotation.T @ moved.rotation)).numpy()
+    apart = parameter_difference(prior.matrix(), prior.time_offset, moved.matrix(), moved.time_offset)  # PARAMETERS order
+    diff = np.asarray(apart[3:6] + apart[:3] + apart[6:])
     jac = np.eye(7)
-    jac[:3, :3] = np.linalg.solve(right_jacobian(rot), right_jacobian(np.asarray(increment[:3], dtype=np.float64)))
-    diff = np.concatenate([rot, moved.translation - prior.translation, [moved.time_offset - prior.time_offset]])
+    jac[:3, :3] = np.linalg.solve(right_jacobian(diff[:3]), right_jacobian(np.asarray(increment[:3], dtype=np.float64)))
     return diff / sigma, jac / sigma[:, None]
 
 
