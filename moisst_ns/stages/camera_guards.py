@@ -19,13 +19,14 @@ from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.observability import TEST_STEPS
+from moisst_ns.stages.observability import JACOBIAN_ORDER, TEST_STEPS
+from moisst_ns.stages.observability import PARAMETERS as REPORT_ORDER
 from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
 
-PARAMETERS = ("roll", "pitch", "yaw", "x", "y", "z", "time_offset")
+PARAMETERS = tuple(REPORT_ORDER[i] for i in JACOBIAN_ORDER)  # roll pitch yaw x y z time_offset (the order is its own inverse)
 """The corrections in solver order (rotation about the camera's own axes, lever arm in the reference frame, delta);
 with ``estimate_readout`` an 8th, the readout time's correction (seconds)."""
-TYPICAL_ERROR = np.asarray(TEST_STEPS)[[3, 4, 5, 0, 1, 2, 6]]
+TYPICAL_ERROR = np.asarray(TEST_STEPS)[list(JACOBIAN_ORDER)]
 """``observability.TEST_STEPS`` (10 cm, 1 deg, 10 ms) in solver order (rad, m, s)."""
 SCALE = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005, 0.005]
 """The solver's ``x_scale`` per correction (rad, m, s, and s for the readout)."""
