@@ -51,6 +51,8 @@ class HandEyeConfig:
     """Frame pairs up to this many frames apart."""
     ransac_px: float = 1.0
     """RANSAC threshold of the essential matrix, pixels."""
+    method: str = "RANSAC"
+    """OpenCV's robust estimator of the essential matrix (``RANSAC``, ``USAC_MAGSAC``, ``USAC_ACCURATE``...)."""
     min_inliers: int = 30
     """A pair is used when its essential matrix explains at least this many matches."""
     min_pairs: int = 6
@@ -117,7 +119,7 @@ def camera_motion(images: List[np.ndarray], intrinsics: dict, config: HandEyeCon
                 continue
             a = cv2.undistortPoints(uv_j[[m.queryIdx for m in good]].reshape(-1, 1, 2).astype(np.float64), K, dist).reshape(-1, 2)
             b = cv2.undistortPoints(uv_k[[m.trainIdx for m in good]].reshape(-1, 1, 2).astype(np.float64), K, dist).reshape(-1, 2)
-            E, mask = cv2.findEssentialMat(a, b, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=config.ransac_px / K[0, 0])
+            E, mask = cv2.findEssentialMat(a, b, np.eye(3), method=getattr(cv2, config.method), prob=0.999, threshold=config.ransac_px / K[0, 0])
             if E is None or E.shape != (3, 3):
                 continue
             count, R, t, mask = cv2.recoverPose(E, a, b, np.eye(3), mask=mask)

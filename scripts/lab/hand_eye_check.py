@@ -23,7 +23,8 @@ def main() -> None:
     rig = load_rig(sys.argv[1])
     truth = load_calibration(rig.root / "ground_truth.json")
     traj = ReferenceTrajectory.of(rig)
-    config = HandEyeConfig()
+    import os
+    config = HandEyeConfig(method=os.environ.get("HE_METHOD", "RANSAC"))
     for name in sys.argv[2:] or camera_sensors(rig):
         begun = time.time()
         spec = rig.sensors[name]
