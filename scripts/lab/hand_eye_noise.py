@@ -21,4 +21,4 @@ for name in sys.argv[2:]:
         lag = m.pairs[:,1]-m.pairs[:,0]
         for L in (1,2,3):
             k = lag == L
-            print(name, method, "lag", L, "rot err deg median", np.degrees(np.median(np.linalg.norm(r[k,:3],axis=1))), "dir err deg median", np.degrees(np.median(np.linalg.norm(r[k,3:],axis=1))), "mean rot vec deg", np.degrees(r[k,:3].mean(0)).round(3))
+            print(name, method, "lag", L, "rot err deg median", np.degrees(np.median(np.linalg.norm(r[k,:3],axis=1))), "dir err deg median", np.degrees(np.median(np.linalg.norm(r[k,3:],axis=1))), "mean rot vec deg", np.degrees(r[k,:3].mean(0)).round(3), "mean dir deg", np.degrees(r[k,3:].mean(0)).round(3))
