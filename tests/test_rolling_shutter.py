@@ -255,20 +255,26 @@ def test_an_estimated_readout_is_an_8th_correction_within_its_bounds(rig_folder)
 def test_estimate_readout_switch_reaches_the_camera_stage(rig_folder, tmp_path, monkeypatch, switch):
     """``moisst-calibrate --estimate-readout`` / ``ns-train ... --pipeline.estimate-readout``: ``prepare_stages`` hands the
     switch to the camera-registration stage's config (and only there: the LiDAR stage's config has no such field)."""
-    from types import SimpleNamespace
+    import dataclasses
 
     import moisst_ns.stage_run as stage_run
     from moisst_ns.calibrate import CalibrateConfig
     from moisst_ns.method_configs import moisst_trainer_config
 
     seen = {}
-    monkeypatch.setattr(stage_run, "run_lidar_first", lambda rig, prior, truth, out, options: seen.setdefault("lidar", options) and None)
-    monkeypatch.setattr(stage_run, "run_camera_registration",
-                        lambda rig, lidar, truth, out, options: seen.setdefault("camera", CameraRegistrationConfig(**options)) and None)
+
+    def lidar_stage(rig, prior, truth, out, options):  # records the options; no stage runs
+        seen["lidar"] = options
+
+    def camera_stage(rig, lidar, truth, out, options):
+        seen["camera"] = CameraRegistrationConfig(**options)
+
+    monkeypatch.setattr(stage_run, "run_lidar_first", lidar_stage)
+    monkeypatch.setattr(stage_run, "run_camera_registration", camera_stage)
     monkeypatch.setattr(stage_run, "apply_stage_results", lambda pipeline, run: None)
     pipeline = moisst_trainer_config("moisst-lite").pipeline
     pipeline.datamanager.data = rig_folder
     pipeline.estimate_readout = switch
     stage_run.prepare_stages(pipeline, tmp_path, 0, None)
     assert seen["camera"].estimate_readout is switch and "estimate_readout" not in seen["lidar"]
-    assert "estimate_readout" in {f.name for f in __import__("dataclasses").fields(CalibrateConfig)}
+    assert "estimate_readout" in {f.name for f in dataclasses.fields(CalibrateConfig)}

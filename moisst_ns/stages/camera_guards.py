@@ -19,8 +19,7 @@ from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.observability import JACOBIAN_ORDER, TEST_STEPS
-from moisst_ns.stages.observability import PARAMETERS as REPORT_ORDER
+from moisst_ns.stages.observability import JACOBIAN_ORDER, TEST_STEPS, PARAMETERS as REPORT_ORDER
 from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
 
 PARAMETERS = tuple(REPORT_ORDER[i] for i in JACOBIAN_ORDER)  # roll pitch yaw x y z time_offset (the order is its own inverse)

@@ -332,24 +332,25 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
     ext, history = start, []
     longest = float(baselines.max()) if len(baselines) else 0.0
     sensor = where.rsplit(".", 1)[-1]
+    sigma = np.repeat(np.array(config.prior_sigma, dtype=np.float64)[[1, 0, 2]], [3, 3, 1])  # prior sigmas, Jacobian order
+    anchored, sigma = free[sigma[free] > 0], np.where(sigma > 0, sigma, 1.0)  # the free parameters with a prior row
     for outer in range(config.max_outer):
         radius = max(config.radius_end, config.radius_start * 0.6**outer)
         reach = config.start_baseline * 2.0**outer
         active = pairs[(baselines <= reach) | (pairs[:, 1] - pairs[:, 0] <= 2)]  # neighbours always pair
         corr = find_correspondences(traj, ext, scans, active, radius, config)
-        shared = view.at(traj, ext, scans, active, consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0]) if view is not None else None
         if outer == 0 and len(corr.src) < max(100, 0.02 * corr.candidates):
             raise LidarFirstError(
                 f"{where}: the scans do not overlap: {len(corr.src)} of {corr.candidates} "
                 f"sampled points found a planar neighbour within {radius:.2f} m in the paired scans (wrong trajectory, "
                 "time stamps or a static LiDAR?)")
+        at_start = consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0]  # the shared view's rows and the prior's unit
+        shared = view.at(traj, ext, scans, active, at_start) if view is not None else None
         spent = ext.time_offset - prior.time_offset
         lower, upper = np.full(7, -np.inf), np.full(7, np.inf)
         lower[6], upper[6] = -config.max_time_offset - spent, config.max_time_offset - spent
         cache: Dict[bytes, Tuple[np.ndarray, np.ndarray]] = {}
-        sigma = np.repeat(np.array(config.prior_sigma, dtype=np.float64)[[1, 0, 2]], [3, 3, 1])  # Jacobian order
-        anchored = free[sigma[free] > 0]  # the free parameters with a prior row
-        scatter = 1.4826 * float(np.median(np.abs(consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0])))
+        scatter = 1.4826 * float(np.median(np.abs(at_start)))  # the prior rows' unit
 
         def evaluate(free_inc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
             key = free_inc.tobytes()
@@ -357,7 +358,7 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
                 inc = np.zeros(7)
                 inc[free] = free_inc
                 residuals, jac = joint_residuals(traj, ext, scans, corr, shared, inc, config)
-                res_p, jac_p = prior_residuals(ext, prior, inc, np.where(sigma > 0, sigma, 1.0))
+                res_p, jac_p = prior_residuals(ext, prior, inc, sigma)
                 cache.clear()
                 cache[key] = (np.concatenate([residuals, scatter * res_p[anchored]]),
                               np.concatenate([jac, scatter * jac_p[anchored]])[:, free])
