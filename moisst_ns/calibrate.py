@@ -64,12 +64,6 @@ class CalibrateConfig(CalibrationSwitches):
     depth_loss_per_m2: Optional[float] = None
     """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
     method's normalised-depth loss (the paper's) when omitted."""
-    line_of_sight_mult: Optional[float] = None
-    """Weight of the line-of-sight loss on LiDAR rays (Urban Radiance Fields: the density along each LiDAR ray
-    must be empty before the measured range and concentrated at it); the method's default when omitted, 0: off."""
-    lidar_far_margin: Optional[float] = None
-    """LiDAR-guided sampling: end each LiDAR ray this many metres behind its measured range (samples concentrate
-    in front of the surface); the method's default when omitted, 0: off."""
     verbose: bool = False
     """Show every third-party warning and banner (by default the known-harmless ones are hidden:
     ``moisst_ns.quiet``)."""
@@ -88,17 +82,11 @@ def rig_trainer_config(method: str, steps: Optional[int], root: Path, out: Path,
     return config
 
 
-def apply_scene_switches(model, depth_loss_per_m2: Optional[float], line_of_sight_mult: Optional[float],
-                         lidar_far_margin: Optional[float]) -> None:
-    """The LiDAR-scene switches shared by ``moisst-calibrate`` and ``moisst-floor`` (None: the method's default): the
-    metric depth loss weight per m^2, the line-of-sight loss weight, the LiDAR-guided sampling margin in metres
-    (``model``: the model config, changed in place)."""
+def apply_scene_switches(model, depth_loss_per_m2: Optional[float]) -> None:
+    """The scene switch shared by ``moisst-calibrate`` and ``moisst-floor`` (None: the method's default): the
+    metric depth loss weight per m^2 (``model``: the model config, changed in place)."""
     if depth_loss_per_m2 is not None:
         model.depth_loss_units, model.depth_loss_mult = "metric", depth_loss_per_m2
-    if line_of_sight_mult is not None:
-        model.line_of_sight_mult = line_of_sight_mult
-    if lidar_far_margin is not None:
-        model.lidar_far_margin_m = lidar_far_margin
 
 
 def calibrate_trainer_config(cfg: CalibrateConfig, root: Path, out: Path, steps: Optional[int]):
@@ -108,9 +96,9 @@ def calibrate_trainer_config(cfg: CalibrateConfig, root: Path, out: Path, steps:
     config = rig_trainer_config(cfg.method, steps, root, out, "run", cfg.seed)
     pipeline = config.pipeline
     model, datamanager = pipeline.model, pipeline.datamanager
-    apply_scene_switches(model, cfg.depth_loss_per_m2, cfg.line_of_sight_mult, cfg.lidar_far_margin)
+    apply_scene_switches(model, cfg.depth_loss_per_m2)
     if not cfg.depth_loss:
-        model.depth_loss_mult = model.line_of_sight_mult = 0.0
+        model.depth_loss_mult = 0.0
     if not cfg.dssim_loss:
         model.dssim_loss_mult = 0.0
     if not cfg.depth_smoothness_loss:

@@ -9,7 +9,7 @@ and ``ns-export cameras`` writes calibrated per-frame poses without further glue
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Literal, Optional, Tuple, Type, Union
+from typing import Dict, Optional, Tuple, Type, Union
 
 import numpy as np
 import torch
@@ -27,11 +27,10 @@ from moisst_ns.rig.geometry import pose_to_xyz_rpy
 
 @dataclass
 class CalibrationOptimizerConfig(CameraOptimizerConfig):
-    """Rig calibration: one extrinsic correction and one time offset per non-reference sensor."""
+    """Rig calibration: one extrinsic correction and one time offset per non-reference sensor (nerfstudio's inherited
+    ``mode`` is not read: ``optimize_extrinsics``, ``optimize_time_offsets`` and ``frozen_sensors`` hold it)."""
 
     _target: Type = field(default_factory=lambda: CalibrationOptimizer)
-    mode: Literal["off", "SO3xR3", "SE3"] = "SO3xR3"
-    """Kept for nerfstudio compatibility; ``off`` freezes the calibration at the priors."""
     optimize_extrinsics: bool = True
     """Optimise the extrinsics (paper Table I / V: spatial)."""
     optimize_time_offsets: bool = True
@@ -88,7 +87,7 @@ class CalibrationOptimizer(CameraOptimizer):
         self.world_scale = float(rig.world.scale)
         with torch.no_grad():
             self.register_buffer("prior_c2w", self.frame_c2w(torch.arange(num_cameras), prior=True), persistent=False)
-        self.set_trainable(self.config.mode != "off")
+        self.set_trainable(True)
 
     # --- parameter handling -------------------------------------------------------------------------------------
 

@@ -25,7 +25,7 @@ from typing import Dict, List, Literal, Optional
 import numpy as np
 
 from moisst_ns.calibrate import apply_scene_switches, rig_trainer_config
-from moisst_ns.stage_run import LIDAR_DEPTH_PER_M2, fixed_calibration_scene, lidar_scene_settings, map_range_settings, seed_everything
+from moisst_ns.stage_run import fixed_calibration_scene, map_range_settings, seed_everything
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
 
@@ -61,13 +61,6 @@ class FloorConfig:
     depth_loss_per_m2: Optional[float] = None
     """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
     method's normalised-depth loss (the paper's) when omitted."""
-    lidar_scene: bool = False
-    """Train the scene as ``moisst-calibrate --lidar-scene`` does (metric LiDAR depth from step 0 over the whole
-    scan; ``--depth-loss-per-m2`` or the pipeline's default weight of 5 per m^2)."""
-    line_of_sight_mult: Optional[float] = None
-    """Weight of the line-of-sight loss on LiDAR rays (the model's default when omitted; 0 switches it off)."""
-    lidar_far_margin: Optional[float] = None
-    """LiDAR-guided sampling as ``moisst-calibrate --lidar-far-margin`` (the model's default when omitted)."""
     map_range_mult: float = 0.0
     """Supervise every camera's rays with the LiDAR map's range, this weight per m^2 (the scene trains at the truth, so
     every pose is known; ``moisst-calibrate --map-range-mult`` does it for the cameras the stages hold); 0: off."""
@@ -260,15 +253,12 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
     config.vis = "tensorboard"
     model, datamanager = config.pipeline.model, config.pipeline.datamanager
     config.pipeline = VanillaPipelineConfig(datamanager=datamanager, model=model)  # the scene alone: no stages, no calibration.json
-    apply_scene_switches(model, cfg.depth_loss_per_m2, cfg.line_of_sight_mult, cfg.lidar_far_margin)
-    if cfg.lidar_scene and any(s.type == "lidar" for s in rig.sensors.values()):
-        lidar_scene_settings(config.pipeline, cfg.depth_loss_per_m2 if cfg.depth_loss_per_m2 is not None else LIDAR_DEPTH_PER_M2)
+    apply_scene_switches(model, cfg.depth_loss_per_m2)
     if cfg.map_range_mult > 0 and any(s.type == "lidar" for s in rig.sensors.values()):
         datamanager.dataparser.prior_calibration = rig.root / "ground_truth.json"  # the map and the frames at the truth
         map_range_settings(config.pipeline, cfg.map_range_mult, [n for n, s in rig.sensors.items() if s.type == "camera"])
     # The scene is built at the true calibration, so the phases that protect it from miscalibrated sensors
     # (reference-only warm-up, detached registration, coarse-to-fine) are switched off: the best scene of this budget.
-    model.camera_optimizer.mode = "off"
     fixed_calibration_scene(config.pipeline)
     config.save_config()
 
@@ -277,6 +267,7 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
     trainer.setup()
     pipeline = trainer.pipeline
     optimizer = pipeline.model.camera_optimizer
+    optimizer.set_trainable(False)  # held while the scene trains (released for the registration below)
     optimizer.rig.set_corrections_to(optimizer.rig.data.ground_truth)  # the scene trains at the truth
     start = time.time()
     trainer.train()
@@ -336,9 +327,6 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
         "scene_steps": config.max_num_iterations,
         "register_steps": cfg.register_steps,
         "average_last": cfg.average_last,
-        "lidar_scene": cfg.lidar_scene,
-        "line_of_sight_mult": float(pipeline.model.config.line_of_sight_mult),
-        "lidar_far_margin_m": float(pipeline.model.config.lidar_far_margin_m),
         "map_range_mult": scene_map_range_mult,
         "scene_wall_time_s": scene_wall,
         "register_wall_time_s": register_wall,

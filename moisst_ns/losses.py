@@ -1,5 +1,5 @@
-"""The losses of paper eq. 7 and 13 beyond nerfacto's colour loss (LiDAR depth, DSSIM, depth smoothness) and Urban
-Radiance Fields' line-of-sight loss on LiDAR rays, and the LiDAR map's range on camera rays, as pure torch functions.
+"""The losses of paper eq. 7 and 13 beyond nerfacto's colour loss (LiDAR depth, DSSIM, depth smoothness) and the
+LiDAR map's range on camera rays, as pure torch functions.
 
 Patches come from nerfstudio's ``PatchPixelSampler`` (``datamanager.patch_size > 1``), which orders the camera
 rays of a batch as (num_patches, patch, patch).
@@ -63,42 +63,6 @@ def lidar_depth_loss(expected_depth: Float[Tensor, "num_rays"], measured_range: 
         The mean squared error.
     """
     return ((expected_depth - measured_range.to(expected_depth)) / units_per_metre).pow(2).mean()
-
-
-def line_of_sight_loss(
-    weights: Float[Tensor, "num_rays num_samples 1"],
-    starts: Float[Tensor, "num_rays num_samples 1"],
-    ends: Float[Tensor, "num_rays num_samples 1"],
-    measured_range: Float[Tensor, "num_rays"],
-    margin: float,
-) -> Float[Tensor, ""]:
-    """Urban Radiance Fields' line-of-sight loss (Rematas et al., CVPR 2022, eq. 5-6) in its probability-mass form:
-    a LiDAR ray's termination must fall within ``margin`` of the measured range, and the space before it is empty.
-
-    The volume-rendering weights are the probability that the ray terminates in each sample's interval. The loss is
-    the mass *before* the surface (empty space that is not empty) plus the mass *not* within ``measured ± margin``
-    (so free space counts twice and mass behind the surface once). Interval overlaps are fractional, so the loss is
-    defined whatever the sample spacing. It shapes the density along the whole ray, where the expected-depth loss
-    (eq. 7) only constrains its mean.
-
-    Args:
-        weights: volume-rendering weights of each sample (sum <= 1 per ray).
-        starts: start of each sample's interval along the unit-direction ray, same units as ``measured_range``.
-        ends: end of each sample's interval.
-        measured_range: the LiDAR's range for that ray.
-        margin: half width of the surface band, same units (URF's epsilon).
-
-    Returns:
-        Mean over rays, in [0, 2].
-    """
-    w, s, e = weights[..., 0], starts[..., 0], ends[..., 0]
-    z = measured_range.to(w)[:, None]
-    length = (e - s).clamp_min(1e-12)
-    before = ((torch.minimum(e, z - margin) - s).clamp_min(0.0) / length).clamp(max=1.0)
-    near = ((torch.minimum(e, z + margin) - torch.maximum(s, z - margin)).clamp_min(0.0) / length).clamp(max=1.0)
-    empty_mass = (w * before).sum(-1)
-    near_mass = (w * near).sum(-1)
-    return (empty_mass + 1.0 - near_mass).mean()
 
 
 def map_range_loss(expected_depth: Float[Tensor, "num_rays"], map_range: Float[Tensor, "num_rays"], units_per_metre: float,

@@ -25,9 +25,6 @@ from moisst_ns.schedules import rescale_schedules
 
 DEFAULT_ITERATIONS = {"moisst": 30000, "moisst-lite": 1500}
 
-CalibrationAdamConfig = AdamOptimizerConfig
-"""Name kept for the config.yml of earlier runs (it only set torch's default betas)."""
-
 
 def _adam_decay(lr: float, steps: int, weight_decay: float = 0.0, final_factor: float = 1e-2) -> dict:
     """Adam with an exponential decay to ``final_factor`` of the initial rate over the run (paper IV)."""

@@ -17,7 +17,6 @@ from typing import Dict, List, Literal, Optional, Tuple, Type
 from unittest import mock
 
 import torch
-from jaxtyping import Bool, Float
 from torch import Tensor
 from torch.nn import Parameter
 
@@ -30,33 +29,12 @@ from moisst_ns.runs.history import append_history
 from moisst_ns.viewer_panel import CalibrationPanel
 from moisst_ns.compat import _NoLPIPS, allow_numpy_in_checkpoints
 from moisst_ns.data.layout import RayLayout
-from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss, line_of_sight_loss, map_range_loss
+from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss, map_range_loss
 from moisst_ns.schedules import rescale_schedules
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
 from moisst_ns.contraction import use_linf_contraction
 
 allow_numpy_in_checkpoints()  # nerfstudio 1.1.5 checkpoints under torch >= 2.6 (moisst_ns.compat)
-
-
-def guided_far_planes(
-    nears: Float[Tensor, "num_rays 1"], fars: Float[Tensor, "num_rays 1"], ranges: Float[Tensor, "num_rays 1"],
-    is_lidar: Bool[Tensor, "num_rays 1"], margin: float,
-) -> Float[Tensor, "num_rays 1"]:
-    """Far planes of LiDAR-guided sampling: a LiDAR ray ends ``margin`` behind its measured range (never beyond its
-    own far plane, never before its near plane); camera rays keep theirs.
-
-    Args:
-        nears: near plane of each ray, model units.
-        fars: far plane of each ray, model units.
-        ranges: measured range of each LiDAR ray (anything for camera rays), model units.
-        is_lidar: which rays are LiDAR rays.
-        margin: how far behind the measured range a LiDAR ray still samples, model units.
-
-    Returns:
-        The new far planes.
-    """
-    guided = torch.maximum(torch.minimum(fars, (ranges + margin).to(fars)), nears + 1e-3)
-    return torch.where(is_lidar, guided, fars)
 
 
 def hash_level_weights(progress: float, num_levels: int, start_levels: float) -> Tensor:
@@ -111,16 +89,6 @@ class MoisstModelConfig(NerfactoModelConfig):
     depth_loss_units: Literal["model", "metric"] = "model"
     """Units of the depth loss: ``model`` (the paper's, normalised depths) or ``metric`` (the depth error in metres,
     so ``depth_loss_mult`` is per m^2 on every rig)."""
-    line_of_sight_mult: float = 0.0
-    """Weight of Urban Radiance Fields' line-of-sight loss on LiDAR rays (``losses.line_of_sight_loss``: the
-    termination mass must lie within ``line_of_sight_margin_m`` of the measured range, the space before it empty);
-    it applies with the depth loss. 0 disables it (the paper has none)."""
-    line_of_sight_margin_m: float = 0.2
-    """Half width of the surface band of the line-of-sight loss, metres."""
-    lidar_far_margin_m: float = 0.0
-    """LiDAR-guided sampling: a LiDAR ray's far plane is set this far behind its measured range, so the proposal
-    samplers spend their samples between the LiDAR and the surface it measured instead of out to the scene's far
-    plane. 0 disables it (every ray samples to ``far_plane``)."""
     map_range_mult: float = 0.0
     """Weight per square metre of the metric depth loss of camera rays against the LiDAR map's range
     (``losses.map_range_loss``, Huber at 0.2 m), on the rays of the datamanager's ``map_range_sensors`` (cameras whose
@@ -140,9 +108,6 @@ class MoisstModelConfig(NerfactoModelConfig):
     calibration): the scene is built from the sensor whose poses are known (and the others register against it,
     as in SOAC), so it cannot absorb their miscalibration. 0 disables it; so does a LiDAR reference sensor (no
     camera's poses are known then: every sensor trains jointly after the warm-up, as in the paper)."""
-    registration_sensors: Literal["cameras", "all"] = "all"
-    """Which non-reference sensors register against a detached scene during ``registration_steps``: only the
-    cameras (LiDAR depth then shapes the scene, as in the paper) or every sensor."""
     depth_loss_ramp_steps: int = 0
     """The depth loss weight rises linearly from 0 to ``depth_loss_mult`` over this many steps after
     ``depth_loss_start`` (avoids a gradient spike on the LiDAR's calibration when depth first applies)."""
@@ -224,7 +189,7 @@ class MoisstModel(NerfactoModel):
             self._c2f_progress = None if progress >= 1.0 else progress
         if self._warmup_active and step >= self.config.calibration_warmup_steps:
             self._warmup_active = False
-            self.camera_optimizer.set_trainable(self.config.camera_optimizer.mode != "off")
+            self.camera_optimizer.set_trainable(True)
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         trainer = training_callback_attributes.trainer
@@ -313,25 +278,13 @@ class MoisstModel(NerfactoModel):
             sensor = torch.where(is_lidar[:, 0], ray_bundle.metadata["lidar_sensor"][:, 0].to(sensor), sensor)
         return sensor
 
-    def _guide_lidar_samples(self, ray_bundle) -> None:
-        """LiDAR rays end ``lidar_far_margin_m`` behind their measured range (``lidar_point`` is metric)."""
-        is_lidar = ray_bundle.metadata.get("is_lidar")
-        if self.config.lidar_far_margin_m <= 0 or is_lidar is None or ray_bundle.fars is None:
-            return
-        scale = float(self.camera_optimizer.world_scale)
-        ranges = ray_bundle.metadata["lidar_point"].norm(dim=-1, keepdim=True) * scale
-        ray_bundle.fars = guided_far_planes(ray_bundle.nears, ray_bundle.fars, ranges, is_lidar, self.config.lidar_far_margin_m * scale)
-
     def get_outputs(self, ray_bundle):
-        self._guide_lidar_samples(ray_bundle)
         if not self.training and not torch.is_inference_mode_enabled():
             return self._with_normals(ray_bundle, super().get_outputs(ray_bundle))
         registering = self.training and self._step < self.config.registration_steps and self._reference_is_camera
         if not registering or self._detached_pass or self.camera_optimizer.rig is None:
             return super().get_outputs(ray_bundle)
         reference = self._ray_sensor(ray_bundle) == self.camera_optimizer.rig.data.reference_index
-        if self.config.registration_sensors == "cameras" and "is_lidar" in ray_bundle.metadata:
-            reference = reference | ray_bundle.metadata["is_lidar"][:, 0]  # LiDAR rays shape the scene
         if bool(reference.all()) or not bool(reference.any()):
             return super().get_outputs(ray_bundle)
         ref_idx, other_idx = torch.nonzero(reference)[:, 0], torch.nonzero(~reference)[:, 0]
@@ -419,12 +372,6 @@ class MoisstModel(NerfactoModel):
             scale = float(self.camera_optimizer.world_scale) if self.config.depth_loss_units == "metric" else 1.0
             loss_dict["depth_loss"] = ramp * self.config.depth_loss_mult * lidar_depth_loss(
                 outputs["expected_depth"][lidar, 0], batch["lidar_range"], units_per_metre=scale)
-            full_batch = "weights_list" in outputs and outputs["weights_list"][-1].shape[0] == outputs["rgb"].shape[0]
-            if self.config.line_of_sight_mult > 0 and full_batch:  # (a registration split keeps only its own samples)
-                samples = outputs["ray_samples_list"][-1][lidar]
-                loss_dict["line_of_sight_loss"] = ramp * self.config.line_of_sight_mult * line_of_sight_loss(
-                    outputs["weights_list"][-1][lidar], samples.frustums.starts, samples.frustums.ends,
-                    batch["lidar_range"], self.config.line_of_sight_margin_m * float(self.camera_optimizer.world_scale))
         if self.training:
             for name, value in loss_dict.items():
                 if not bool(torch.isfinite(value).all()):
@@ -432,7 +379,7 @@ class MoisstModel(NerfactoModel):
         return loss_dict
 
     def _depth_ramp(self) -> float:
-        """Weight factor of the depth terms (LiDAR depth, line of sight, map range) at this step: 0 before
+        """Weight factor of the depth terms (LiDAR depth, map range) at this step: 0 before
         ``depth_loss_start`` (the colour-only start), then rising linearly to 1 over ``depth_loss_ramp_steps``."""
         if self._step < self.config.depth_loss_start:
             return 0.0

@@ -8,11 +8,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional, Sequence
-
-LIDAR_DEPTH_PER_M2 = 5.0
-"""Weight of the metric LiDAR depth loss once the LiDARs are calibrated, per m^2 (docs/method.md: the old default
-was 0.018 per m^2 on the 50-frame rig; 500 model units, ~5 per m^2, lowered the floor five-fold on the tiny rig)."""
+from typing import Optional, Sequence
 
 
 class CalibrationError(ValueError):
@@ -40,17 +36,9 @@ class CalibrationSwitches:
     the NeRF and calibration.json keep rig.json's readout."""
     camera_refinement: bool = False
     """Let the NeRF move the registered cameras further (the paper's joint refinement) instead of holding them."""
-    registration_sensors: Optional[Literal["cameras", "all"]] = None
-    """Override which sensors register against a detached scene during the registration phase: ``cameras`` (the
-    calibrated LiDARs' depth shapes the scene while the cameras register) or ``all`` (the method's default; measured
-    better for the forward camera, worse for the side camera: docs/method.md)."""
     map_range_mult: float = 0.0
     """After the LiDAR-first stage, supervise the rays of the cameras whose pose is known (the reference camera, the
     cameras the stages hold) with the calibrated LiDAR map's range, this weight per m^2 (``stages.map_range``); 0: off."""
-    lidar_scene: bool = False
-    """After the LiDAR-first stage, let the calibrated LiDARs' metric depth (the model's metric depth weight, default
-    5 per m^2) shape the scene from step 0 over their whole scan (an experiment of the metric-scene issue: on the
-    50-frame rig it helped the side camera's translation and hurt its rotation; docs/method.md)."""
     scene_steps: Optional[int] = None
     """Training steps of the NeRF when the stages hold every sensor (it then calibrates nothing and only builds the
     scene for the viewer, the report and the uncertainty pass). ``moisst-calibrate``: --max-num-iterations when given,
@@ -94,19 +82,6 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
-
-
-def lidar_scene_settings(pipeline, depth_per_m2: float) -> None:
-    """What calibrated LiDARs change in the NeRF stage: their depth, in metres with ``depth_per_m2``, shapes the
-    scene from step 0, over the whole scan (not only the reference camera's view, so the side cameras find
-    geometry where they look) and also while the cameras register against the scene (``pipeline``: the pipeline
-    config, changed in place)."""
-    model, datamanager = pipeline.model, pipeline.datamanager
-    model.registration_sensors = "cameras"
-    model.depth_loss_units, model.depth_loss_mult = "metric", depth_per_m2
-    model.depth_loss_start = model.depth_loss_ramp_steps = 0
-    datamanager.lidar_start_step = 0
-    datamanager.lidar_reference_view_only = False
 
 
 def fixed_calibration_scene(pipeline) -> None:
@@ -187,13 +162,8 @@ def apply_stage_results(pipeline, run: StageRun) -> None:
     file = stage.get("file") or run.out / ("camera_registration" if run.cameras else "lidar_first") / "calibration.json"
     pipeline.datamanager.dataparser.prior_calibration = Path(file).resolve()  # config.yml keeps it: loading the run needs it
     model.camera_optimizer.frozen_sensors = run.frozen
-    if pipeline.registration_sensors is not None:
-        model.registration_sensors = pipeline.registration_sensors
     if pipeline.map_range_mult > 0 and run.lidar is not None and any(s.type == "lidar" for s in rig.sensors.values()):
         map_range_settings(pipeline, pipeline.map_range_mult, [n for n in (rig.reference_sensor, *run.frozen) if rig.sensors[n].type == "camera"])
-    if pipeline.lidar_scene:  # the model's metric weight, or the default; none with the depth loss off
-        weight = model.depth_loss_mult if model.depth_loss_units == "metric" or model.depth_loss_mult == 0 else LIDAR_DEPTH_PER_M2
-        lidar_scene_settings(pipeline, weight)
 
 
 def run_lidar_first(rig, prior, truth, out: Path, options: dict) -> Optional[dict]:

@@ -176,8 +176,8 @@ def nerfacto_case(rig: Path, out: Path, raw: dict, steps: int, pose_optimizer: s
 
 
 def floor_cases(out: Path, raw: dict, perturb: dict) -> List[dict]:
-    """Run ``moisst_ns.floor`` on the scenario's rigs (``[floor]`` table: steps, register_steps, depth_rays, seeds,
-    lidar_scene); the method preset's own rays per step.
+    """Run ``moisst_ns.floor`` on the scenario's rigs (``[floor]`` table: steps, register_steps, depth_rays, seeds); the
+    method preset's own rays per step.
 
     Returns:
         Per rig: ``{"layout", "seed", "scene_steps", "register_steps", "wall_s", "floor", "depth", "stages"}``.
@@ -192,8 +192,7 @@ def floor_cases(out: Path, raw: dict, perturb: dict) -> List[dict]:
         started = time.perf_counter()
         measured = run_floor(FloorConfig(dataset=rig, output_dir=out / "runs" / f"floor-{layout}-s{seed}",
                                          scene_steps=spec.get("steps", raw["steps"]), register_steps=spec.get("register_steps", 100),
-                                         seed=seed, depth_check_rays=spec.get("depth_rays", 4096),
-                                         lidar_scene=bool(spec.get("lidar_scene", False))))
+                                         seed=seed, depth_check_rays=spec.get("depth_rays", 4096)))
         floors.append({"layout": layout, "seed": seed, "scene_steps": measured["scene_steps"], "register_steps": measured["register_steps"],
                        "wall_s": time.perf_counter() - started, "floor": measured["floor"], "depth": measured["depth"],
                        "stages": measured.get("stages")})

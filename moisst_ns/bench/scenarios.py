@@ -60,7 +60,7 @@ def load_scenarios(path: Path) -> dict:
                 raise BenchError(f"{path}: floor.{key}: must be a positive integer, got {value!r}")
         if floor.get("seeds", "all") not in ("all", "first"):
             raise BenchError(f"{path}: floor.seeds: must be 'all' or 'first'")
-        unknown = sorted(set(floor) - {"steps", "register_steps", "depth_rays", "seeds", "lidar_scene"})
+        unknown = sorted(set(floor) - {"steps", "register_steps", "depth_rays", "seeds"})
         if unknown:
             raise BenchError(f"{path}: floor.{unknown[0]}: unknown key")
     ids = set()

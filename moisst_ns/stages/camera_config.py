@@ -17,12 +17,9 @@ class CameraRegistrationConfig:
     max_depth: float = 40.0
     """Map points farther than this from a camera are not used (a pixel covers too much there), metres."""
     points_per_frame: int = 600
-    """Map points sampled per camera frame and outer iteration at full resolution (weighted by the image gradient);
-    a level ``f`` times smaller samples ``f`` times fewer (it has ``f^2`` times fewer pixels)."""
-    sample_gradient_power: float = 1.0
-    """Map points are drawn with probability proportional to ``|grad I|^p`` at their projection in the camera's frame:
-    1 weights by the gradient's magnitude, 2 by what a point tells about its projection (a residual changes by
-    ``grad I . du``: its information is the squared gradient), 0 draws uniformly among the visible points."""
+    """Map points sampled per camera frame and outer iteration at full resolution (drawn with probability proportional
+    to ``|grad I|`` at their projection); a level ``f`` times smaller samples ``f`` times fewer (it has ``f^2`` times
+    fewer pixels)."""
     min_width: int = 40
     """Coarsest pyramid level: halve the images while they stay at least this many pixels wide."""
     outer_iterations: int = 3

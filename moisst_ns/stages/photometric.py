@@ -226,7 +226,7 @@ class Registration:
                 continue
             uv, _ = self.model.pixels(theta, stack.model, self.world[candidates], np.full(len(candidates), k), jacobian=False)
             _, grad, ok = bilinear(stack, np.full(len(candidates), k), uv)
-            weight = np.linalg.norm(grad, axis=1) ** c.sample_gradient_power * ok
+            weight = np.linalg.norm(grad, axis=1) * ok
             if weight.sum() <= 0:
                 continue
             take = self.rng.choice(len(candidates), size=min(per_frame, int((weight > 0).sum())), replace=False, p=weight / weight.sum())

@@ -15,7 +15,7 @@
 #   k48     : .devdata/k48 (if present), default stages
 # Then per run: wall time, exit status, GPU max_memory_allocated, errors vs ground truth (moisst-eval; from the
 # last 10 logged history rows when the run was stopped before writing calibration.json).
-# $OUT gets at most 8 files: 3 logs, 3 <name>_calibration.json, summaries.json, report.txt.
+# $OUT gets at most 11 files: 3 logs, 3 <name>_calibration.json, 3 <name>_report.json, summaries.json, report.txt.
 set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-$PWD/outputs/gpu_measure}
@@ -112,6 +112,10 @@ kill "$SMI" 2>/dev/null
         echo "=== $n: exit $rc, wall ${wall}s$([ "$rc" = 124 ] && echo ' (STOPPED BY TIMEOUT)')"
         grep -h '^\[gpu_measure\]' "$OUT/$n.log" | sed 's/^/  /'
         grep -hE '^wrote .*calibration.json' "$OUT/$n.log" | sed 's/^/  /'
+        if [ -f "$run/report/report.json" ]; then
+            cp "$run/report/report.json" "$OUT/${n}_report.json"
+            "$PY" -c "import json,sys; [print(f\"  scene check {r['camera']}: median |rendered depth - LiDAR depth| {r['median_depth_residual_m']:.3f} m over {r['points']} points\") for r in json.load(open(sys.argv[1]))['renders']]" "$run/report/report.json"
+        fi
         if [ -f "$run/calibration.json" ]; then
             cp "$run/calibration.json" "$OUT/${n}_calibration.json"
             echo "  errors of calibration.json vs $gt:"
