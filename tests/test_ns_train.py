@@ -3,7 +3,8 @@
 A tiny rig (64x48, 6 frames per sensor, 3 cameras and a LiDAR), 20 steps, seed 0, one torch thread: the LiDAR-first
 stage runs, the camera registration keeps both cameras' priors (6 frames are too few for it), the NeRF calibrates
 them, then the held-back checks and the report. ``ns-train`` must leave the same calibration.json in its run folder as
-``moisst-calibrate`` leaves in OUT; the finished run loads, exports and resumes without running the stages again.
+``moisst-calibrate`` leaves in OUT; the finished run loads, exports, is served by ``ns-viewer`` and resumes without
+running the stages again.
 """
 
 import json
@@ -83,6 +84,38 @@ def test_ns_export_cameras_and_pointcloud_of_the_finished_run(runs, tmp_path):
     # loading the run (as ns-viewer and ns-eval do) ran no stage again
     assert "[lidar-first]" not in cameras.stdout + cloud.stdout
     assert tree_hash(runs["run"] / "lidar_first") + tree_hash(runs["run"] / "camera_registration") == runs["stages"]
+
+
+def test_ns_viewer_serves_the_finished_run(runs):
+    """``ns-viewer --load-config`` of the finished run loads it (no stage runs again) and serves the viewer over HTTP
+    until stopped; a crash while loading (the model's calibration panel, the rig's frusta) ends it before it serves."""
+    import select
+    import signal
+    import socket
+    import time
+    import urllib.request
+
+    with socket.socket() as s:  # a free port
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    viewer = subprocess.Popen([str(BIN / "ns-viewer"), "--load-config", str(runs["run"] / "config.yml"), "--viewer.websocket-port", str(port)],
+                              cwd=runs["run"].parents[3], env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    output, deadline = "", time.time() + 300
+    try:
+        while f"http://0.0.0.0:{port}" not in output and viewer.poll() is None and time.time() < deadline:
+            if select.select([viewer.stdout], [], [], 1.0)[0]:
+                output += viewer.stdout.readline()
+        assert viewer.poll() is None, output[-3000:]  # still running: loaded without an error
+        assert f"http://0.0.0.0:{port}" in output, output[-3000:]
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30) as page:
+            assert page.status == 200
+        assert "[lidar-first]" not in output and "Traceback" not in output
+    finally:
+        viewer.send_signal(signal.SIGINT)
+        try:
+            viewer.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            viewer.kill()
 
 
 def test_a_resumed_run_loads_the_stages_of_the_run_it_continues(runs, tmp_path, capsys):
