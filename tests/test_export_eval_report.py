@@ -20,7 +20,9 @@ from moisst_ns import runs
 from moisst_ns.runs import folder
 from moisst_ns.cli import evaluate, export
 from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
-from moisst_ns.report import draw_points, lidar_points_world, nearest_lidar_frames, project_points, sensor_pose, write_report
+from moisst_ns.report import write_report
+from moisst_ns.report_images import draw_points, project_points
+from moisst_ns.report_views import lidar_points_world, nearest_lidar_frames, sensor_pose
 from moisst_ns.rig.format import RigFormatError, load_calibration, load_lidar_scan, load_rig
 from moisst_ns.datasets.synth import SynthConfig, build_scene, make_path, make_rig
 
@@ -331,7 +333,7 @@ def test_draw_points_nearest_on_top():
     uv = np.array([[2.5, 1.5], [2.9, 1.1], [0.5, 3.5]])
     out = draw_points(image, uv, np.array([10.0, 2.0, 6.0]), np.array([True, True, False]), vmin=2.0, vmax=10.0)
     assert image.sum() == 0  # input untouched
-    from moisst_ns.report import depth_colors
+    from moisst_ns.report_images import depth_colors
 
     near = depth_colors(np.array([2.0]), 2.0, 10.0)[0]
     assert np.array_equal(out[1, 2], near)  # two points in pixel (2, 1): the nearer wins
