@@ -106,10 +106,6 @@ class CalibrationOptimizer(CameraOptimizer):
 
     # --- poses --------------------------------------------------------------------------------------------------
 
-    def to_model_frame(self, world_T_sensor: Float[Tensor, "*batch 4 4"]) -> Float[Tensor, "*batch 4 4"]:
-        """Metric OpenCV ``world_T_sensor`` -> nerfstudio's normalised OpenGL camera-to-world (``WorldFrame``)."""
-        return self.world.camera_to_model(world_T_sensor)
-
     def frame_c2w(self, indices: Int[Tensor, "num"], prior: bool = False, row_time: Optional[Float[Tensor, "num"]] = None) -> Float[Tensor, "num 4 4"]:
         """Calibrated (or prior) camera-to-world of training frames, nerfstudio frame, float64 (eq. 10); with ``row_time``
         (seconds after each frame's stamp: a rolling-shutter row's, ``geometry.row_time``) at those times."""
@@ -119,7 +115,7 @@ class CalibrationOptimizer(CameraOptimizer):
         if row_time is not None:
             stamp = stamp + row_time.to(stamp)
         fn = self.rig.prior_sensor_poses if prior else self.rig.sensor_poses
-        return self.to_model_frame(fn(sensor, stamp))
+        return self.world.camera_to_model(fn(sensor, stamp))  # metric OpenCV -> nerfstudio's normalised OpenGL
 
     def forward(self, indices: Int[Tensor, "camera_indices"]) -> Float[Tensor, "camera_indices 3 4"]:
         """Per training frame, ``prior_c2w^-1 @ calibrated_c2w`` (a 3x4 in the camera frame), as the viewer expects."""

@@ -2,7 +2,7 @@
 shared view"): prints each LiDAR's error per axis (cm, deg, ms), its weak parameters, formal sigmas and wall time.
 
 Usage: .venv/bin/python scripts/lidar_stage.py RIG [FIELD=VALUE ...]
-(e.g. ``shared_view=True split_half=False points_per_scan=1000``.)
+(e.g. ``view_search=False split_half=False points_per_scan=1000``.)
 """
 
 from __future__ import annotations

@@ -17,7 +17,9 @@ import numpy as np
 
 from moisst_ns.datasets.kitti360 import MeiCamera, _inv, _rot4, format_timestamp
 from moisst_ns.rig.format import load_lidar_scan, load_rig, load_tum
-from moisst_ns.datasets.synth import SynthConfig, _orthonormalise, build_scene, make_path, make_rig, rot_x, rot_y, rot_z
+from moisst_ns.datasets.synth import SynthConfig, build_scene, make_path, make_rig
+from moisst_ns.datasets.synth_path import rot_x, rot_y, rot_z
+from moisst_ns.datasets.synth_rig import _orthonormalise
 
 SEQUENCE = "2013_05_28_drive_0000_sync"
 BASE_NS = int(np.datetime64("2013-05-28T08:00:00", "ns").astype(np.int64))

@@ -107,11 +107,10 @@ def test_rolling_jacobian_follows_the_row_and_the_readout():
     np.testing.assert_allclose(eight, seven, atol=1e-9)
 
 
-def test_shared_view_projects_lidar_edges_from_the_rows_pose_with_an_exact_jacobian(rig_folder):
+def test_shared_view_projects_lidar_edges_from_the_rows_pose(rig_folder):
     """The LiDAR stage's shared view: with the reference camera's readout, each LiDAR edge point is seen from the pose
-    at its row's time (its edge distance changes by tenths of a pixel), and on linear distance maps (bilinear
-    interpolation exact) the Jacobian equals central differences: the row's time follows the point."""
-    from moisst_ns.stages.lidar_first import LidarFirstConfig, SharedView, consistency_residuals, find_correspondences, load_scans, scan_pairs
+    at its row's time: its edge distance differs from the global shutter's (by tenths of a pixel)."""
+    from moisst_ns.stages.lidar_first import LidarFirstConfig, SharedView, load_scans, scan_pairs
     from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory
     from moisst_ns.stages.lidar_view import view_residuals
 
@@ -121,22 +120,15 @@ def test_shared_view_projects_lidar_edges_from_the_rows_pose_with_an_exact_jacob
     traj, config = Trajectory.from_rig(rig), LidarFirstConfig()
     scans = load_scans(rig, "lidar", traj, config, log=lambda _: None)
     pairs, _ = scan_pairs(traj, scans, ext.time_offset, config)
-    corr = find_correspondences(traj, ext, scans, pairs, config.radius_end, config)
     shared = SharedView.of(rig, traj, scans)
     assert shared.view.readout == READOUT
-    shared = shared.at(traj, ext, scans, pairs, consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0])
+    shared = shared.at(traj, ext, scans, pairs)
     rows = shared.rows
     assert len(rows.point) >= 10 and len(np.unique(rows.frame)) >= 5
-    view = planar_distance_view(shared.view)
+    view = planar_distance_view(shared.view)  # a plane per frame: a pose change shows as a distance change
     increment = np.array([0.002, -0.001, 0.003, 0.02, -0.01, 0.03, 0.004])
-    value, jac = view_residuals(traj, ext, scans, view, rows, increment)
-    numeric = []
-    for j in range(7):
-        e = np.zeros(7)
-        e[j] = 1e-6
-        numeric.append((view_residuals(traj, ext, scans, view, rows, increment + e)[0] - view_residuals(traj, ext, scans, view, rows, increment - e)[0]) / 2e-6)
-    assert np.abs(np.stack(numeric, axis=1) - jac).max() < 1e-5 * np.abs(jac).max()
-    global_value, _ = view_residuals(traj, ext, scans, replace(view, readout=0.0), rows, increment)
+    value = view_residuals(traj, ext, scans, view, rows, increment)
+    global_value = view_residuals(traj, ext, scans, replace(view, readout=0.0), rows, increment)
     assert np.abs(value - global_value).max() > 0.05
 
 

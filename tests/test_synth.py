@@ -22,10 +22,10 @@ from moisst_ns.datasets.synth import (
     make_path,
     make_rig,
     make_truth,
-    perturbation_rotation,
     reference_trajectory_samples,
-    render_camera,
 )
+from moisst_ns.datasets.synth_render import render_camera
+from moisst_ns.datasets.synth_rig import perturbation_rotation
 from helpers import file_hashes
 
 TINY = dict(width=64, height=48, frames=8, lidar_azimuth_steps=512, lidar_max_points=6000)

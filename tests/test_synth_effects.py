@@ -25,8 +25,8 @@ from moisst_ns.datasets.synth import (
     intrinsics,
     make_path,
     make_rig,
-    render_camera,
 )
+from moisst_ns.datasets.synth_render import render_camera
 from moisst_ns.datasets.synth_effects import (
     REALISTIC,
     Effects,

@@ -27,12 +27,12 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional
 
 import numpy as np
 
 from moisst_ns.bench.speed import keep_speed_block, with_speed_table
-from moisst_ns.bench.scenarios import ERR_KEYS, HIST_KEYS, LOSS_SWITCHES, OPTIMISE, BenchError, _seeds, load_scenarios, packaged_scenarios
+from moisst_ns.bench.scenarios import ERR_KEYS, LOSS_SWITCHES, _seeds, load_scenarios, packaged_scenarios
 from moisst_ns.bench.tables import markdown, merge_frame_errors, plot_error_vs_time, pooled, stage_errors, time_to_target
 
 REPO = Path(__file__).resolve().parents[2]

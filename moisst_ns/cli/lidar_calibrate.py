@@ -38,9 +38,6 @@ class LidarCalibrateConfig:
     """Seed of the point sampling (same seed, same result)."""
     points_per_scan: int = 3000
     """Source points sampled per scan (more: slower, slightly more accurate)."""
-    shared_view: bool = False
-    """Also fit the LiDAR's depth edges to the reference camera's image edges (``stages/lidar_view.py``): what places a
-    LiDAR whose drive is too straight for the motion to (docs/lidar-first.md, "The shared view")."""
     threads: Optional[int] = None
     """torch CPU threads; torch's default when omitted."""
 
@@ -63,8 +60,7 @@ def run_lidar_calibration(cfg: LidarCalibrateConfig) -> dict:
         fail(prog, err)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    config = LidarFirstConfig(max_time_offset=cfg.max_time_offset, seed=cfg.seed, points_per_scan=cfg.points_per_scan,
-                              shared_view=cfg.shared_view)
+    config = LidarFirstConfig(max_time_offset=cfg.max_time_offset, seed=cfg.seed, points_per_scan=cfg.points_per_scan)
     start = time.perf_counter()
     try:
         result = calibrate_lidars(rig, config, cfg.sensors or None)

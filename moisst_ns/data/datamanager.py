@@ -28,8 +28,6 @@ from moisst_ns.data.layout import RayLayout
 from moisst_ns.rig.format import Rig, RigFormatError, load_lidar_scan
 from moisst_ns.rig.geometry import row_time
 
-LIDAR_KEYS = ("is_lidar", "lidar_point", "lidar_stamp", "lidar_sensor")
-
 
 @dataclass
 class MoisstDataManagerConfig(VanillaDataManagerConfig):

@@ -13,16 +13,16 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Literal, Optional, Tuple, Type
+from typing import Literal, Type
 
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
 from moisst_ns.data.dataparser import MoisstRigDataParser, MoisstRigDataParserConfig
-from moisst_ns.datasets.kitti360 import CAMERAS, Kitti360Config, convert
+from moisst_ns.datasets.kitti360 import Kitti360Config, Kitti360Frames, convert
 
 
 @dataclass
-class MoisstKitti360DataParserConfig(MoisstRigDataParserConfig):
+class MoisstKitti360DataParserConfig(Kitti360Frames, MoisstRigDataParserConfig):
     """Reads one KITTI-360 sequence (frame range) from the dataset's download layout."""
 
     _target: Type = field(default_factory=lambda: MoisstKitti360DataParser)
@@ -30,18 +30,6 @@ class MoisstKitti360DataParserConfig(MoisstRigDataParserConfig):
     """KITTI-360 root folder (holds calibration/, data_poses/, data_2d_raw/, data_3d_raw/). Read only."""
     sequence: str = "2013_05_28_drive_0000_sync"
     """Sequence folder name."""
-    first_frame: int = 0
-    """First frame index (inclusive)."""
-    last_frame: Optional[int] = None
-    """Last frame index (inclusive); default first_frame + 99."""
-    stride: int = 1
-    """Keep every stride-th frame of the range."""
-    cameras: Tuple[str, ...] = CAMERAS
-    """Cameras to include (image_00, the reference, is always included)."""
-    lidar: bool = True
-    """Include the Velodyne."""
-    downscale: int = 1
-    """Shrink every image by this integer factor."""
     fisheye_fov: float = 100.0
     """Horizontal field of view (degrees) of the pinhole images the fisheye cameras are rectified to."""
     perturb: Literal["none", "paper"] = "none"

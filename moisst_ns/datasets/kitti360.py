@@ -140,15 +140,9 @@ def pinhole_for_fisheye(fov_deg: float, size: Tuple[int, int]) -> np.ndarray:
 
 
 @dataclass
-class Kitti360Config:
-    """Convert one KITTI-360 sequence (frame range) from its download layout to a ``moisst-rig/1`` dataset."""
+class Kitti360Frames:
+    """The frames and sensors converted, at what size: the settings the dataparser ``moisst-kitti360`` shares."""
 
-    root: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="ROOT")]
-    """KITTI-360 root folder (holds calibration/, data_poses/, data_2d_raw/, data_3d_raw/). Read only."""
-    sequence: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="SEQ")]
-    """Sequence folder name, e.g. 2013_05_28_drive_0000_sync."""
-    out: Path = Path("kitti360-rig")
-    """Output dataset folder (created; must be absent or empty unless --overwrite)."""
     first_frame: int = 0
     """First frame index (inclusive)."""
     last_frame: Optional[int] = None
@@ -161,6 +155,24 @@ class Kitti360Config:
     """Include the Velodyne (data_3d_raw/SEQ/velodyne_points)."""
     downscale: int = 1
     """Shrink every image by this integer factor (intrinsics scaled accordingly); 4 suits 2 CPU cores."""
+
+
+@dataclass
+class _Kitti360Source:
+    """The converter's first fields (a base, so that they stay first: rig.json's metadata keeps the fields' order)."""
+
+    root: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="ROOT")]
+    """KITTI-360 root folder (holds calibration/, data_poses/, data_2d_raw/, data_3d_raw/). Read only."""
+    sequence: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="SEQ")]
+    """Sequence folder name, e.g. 2013_05_28_drive_0000_sync."""
+    out: Path = Path("kitti360-rig")
+    """Output dataset folder (created; must be absent or empty unless --overwrite)."""
+
+
+@dataclass
+class Kitti360Config(Kitti360Frames, _Kitti360Source):
+    """Convert one KITTI-360 sequence (frame range) from its download layout to a ``moisst-rig/1`` dataset."""
+
     fisheye_size: Tuple[int, int] = (704, 704)
     """Width and height, before --downscale, of the pinhole images the fisheye cameras are rectified to."""
     fisheye_fov: float = 100.0

@@ -353,7 +353,7 @@ def _cameras(config, cameras: Sequence[str], dataset: str) -> List[str]:
 
 
 def _perturbed(config, T_ref: Dict[str, np.ndarray]) -> Dict[str, Tuple[np.ndarray, float]]:
-    from moisst_ns.datasets.synth import paper_perturbation
+    from moisst_ns.datasets.synth_rig import paper_perturbation
 
     rng = np.random.default_rng(config.seed)
     priors = {}

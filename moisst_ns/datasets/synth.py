@@ -33,15 +33,9 @@ import numpy as np
 import tyro
 
 from moisst_ns.datasets.synth_effects import Effects, check_effects, make_movers, perturb_trajectory, photometric_params, resolve_effects
-from moisst_ns.datasets.synth_render import (  # noqa: F401 (re-exported: the generator's public names)
-    LIDAR_MAX_RANGE, LIDAR_MIN_RANGE, PERIOD, lidar_beam_directions, render_camera, render_lidar, write_camera_frames, write_lidar_frames,
-    write_npz,
-)
-from moisst_ns.datasets.synth_rig import (  # noqa: F401 (re-exported)
-    MOUNTS, PHASES, REFERENCE, SensorTruth, V_R_OPENCV, _inv, _orthonormalise, _pose, _rig_seed, _streams, knock_mount, make_priors,
-    make_truth, paper_perturbation, perturbation_rotation, vehicle_T_sensor,
-)
-from moisst_ns.datasets.synth_scene import Scene, VehiclePath, _ground, _plaza_objects, _street_objects, rot_x, rot_y, rot_z  # noqa: F401
+from moisst_ns.datasets.synth_render import PERIOD, write_camera_frames, write_lidar_frames
+from moisst_ns.datasets.synth_rig import MOUNTS, REFERENCE, SensorTruth, _streams, knock_mount, make_priors, make_truth, vehicle_T_sensor
+from moisst_ns.datasets.synth_scene import Scene, VehiclePath, _ground, _plaza_objects, _street_objects
 
 T0 = 1000.0
 """Absolute time of the first reference frame, seconds (keeps stamps away from zero, like real clocks)."""

@@ -9,7 +9,7 @@ from typing import Dict, Sequence, Tuple
 
 import numpy as np
 
-from moisst_ns.datasets.synth_scene import rot_x, rot_y, rot_z
+from moisst_ns.datasets.synth_path import rot_x, rot_y, rot_z
 
 REFERENCE = "cam_front"
 

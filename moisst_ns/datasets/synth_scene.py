@@ -8,7 +8,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
-from moisst_ns.datasets.synth_path import VehiclePath, rot_x, rot_y, rot_z  # noqa: F401 (re-exported)
+from moisst_ns.datasets.synth_path import VehiclePath, rot_z
 
 
 TEXTURE_SIZE = 512

@@ -8,7 +8,8 @@ from typing import Optional
 
 import numpy as np
 
-from moisst_ns.datasets.synth import LIDAR_MAX_RANGE, LIDAR_MIN_RANGE, SynthConfig
+from moisst_ns.datasets.synth import SynthConfig
+from moisst_ns.datasets.synth_render import LIDAR_MAX_RANGE, LIDAR_MIN_RANGE
 
 
 def config_of_rig(metadata: dict) -> Optional[SynthConfig]:

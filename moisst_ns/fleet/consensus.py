@@ -238,12 +238,6 @@ def vehicle_consensus(drives: List[DriveEstimate], reference: str, spread_sigma:
     return VehicleConsensus(reference, [d.drive for d in drives], sensors)
 
 
-def fleet_consensus(vehicles: Dict[str, List[DriveEstimate]], reference: Dict[str, str], flag_sigma: float = 5.0):
-    """Every vehicle's consensus, with the fleet's spread σ; returns ``(consensus per vehicle, spread σ per sensor)``."""
-    sigma = fleet_spread(vehicles, reference)
-    return {v: vehicle_consensus(d, reference[v], sigma, flag_sigma) for v, d in vehicles.items() if d}, sigma
-
-
 def sigma_from_uncertainty(entry: Optional[dict], R_ref_sensor: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
     """The seven σ of a calibration.json sensor's optional ``uncertainty`` object, or None when absent/incomplete.
 

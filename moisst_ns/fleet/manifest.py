@@ -36,12 +36,6 @@ DRIVE_KEYS = ("id", "vehicle", "dataset")
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
-def calibrate_options() -> Dict[str, Any]:
-    """The ``moisst-calibrate`` options a manifest may set: field name -> type (from ``CalibrateConfig``)."""
-    hints = typing.get_type_hints(CalibrateConfig)
-    return {f.name: hints[f.name] for f in dataclasses.fields(CalibrateConfig) if f.name not in FLEET_OWNED}
-
-
 @dataclass
 class Drive:
     """One drive of the manifest."""
@@ -143,7 +137,8 @@ def load_manifest(path: Path | str) -> Manifest:
     unknown = sorted(set(raw) - {"drive", "calibrate"})
     if unknown:
         raise FleetError(f"{file}: unknown top-level key {unknown[0]!r} (known: drive, calibrate)")
-    allowed = calibrate_options()
+    hints = typing.get_type_hints(CalibrateConfig)  # the moisst-calibrate options a manifest may set, and their types
+    allowed = {f.name: hints[f.name] for f in dataclasses.fields(CalibrateConfig) if f.name not in FLEET_OWNED}
     calibrate = raw.get("calibrate", {})
     if not isinstance(calibrate, dict):
         raise FleetError(f"{file}: calibrate: must be a table ([calibrate])")

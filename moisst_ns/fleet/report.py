@@ -10,7 +10,7 @@ from typing import Any, Callable, Dict, List
 
 import numpy as np
 
-from moisst_ns.fleet.consensus import COMPONENTS, DriveEstimate, SensorEstimate, fleet_consensus, sigma_from_uncertainty
+from moisst_ns.fleet.consensus import COMPONENTS, DriveEstimate, SensorEstimate, fleet_spread, sigma_from_uncertainty, vehicle_consensus
 from moisst_ns.fleet.manifest import Manifest, drive_dir
 
 FORMAT = "moisst-fleet/1"
@@ -59,7 +59,9 @@ def write_reports(cfg, manifest: Manifest, rows: List[Dict[str, Any]], wall_s: f
         vehicles[row["vehicle"]].append(estimate)
     own = [s.sigma is not None for v in vehicles.values() for d in v for s in d.sensors.values()]
     source = "uncertainty" if own and all(own) else ("mixed" if any(own) else "spread")
-    consensus, spread = fleet_consensus({v: d for v, d in vehicles.items() if d}, reference, cfg.flag_sigma)
+    vehicles = {v: d for v, d in vehicles.items() if d}
+    spread = fleet_spread(vehicles, reference)
+    consensus = {v: vehicle_consensus(d, reference[v], spread, cfg.flag_sigma) for v, d in vehicles.items()}
 
     for row in rows:
         row["sensors"] = {}

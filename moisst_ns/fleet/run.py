@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sys
 import time
 from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass
@@ -52,11 +51,6 @@ class FleetConfig:
     """Retries of a failed drive before it is reported as failed (the other drives go on)."""
     flag_sigma: float = 5.0
     """Threshold in σ units: a drive's sensor beyond it "deviates"; a lasting step beyond it is a moved sensor."""
-
-
-def is_done(folder: Path) -> bool:
-    """True when the drive in ``folder`` finished (its marker and calibration.json exist)."""
-    return (folder / MARKER).is_file() and (folder / "calibration.json").is_file()
 
 
 def write_atomic(path: Path, text: str) -> None:
@@ -193,7 +187,7 @@ def run_drives(cfg: FleetConfig, manifest: Manifest, report: Callable[[str], Non
         row = {"id": drive.id, "vehicle": drive.vehicle, "dataset": str(drive.dataset), "status": None, "reason": None,
                "wall_s": None, "resumed": False}
         rows[drive.id] = row
-        if is_done(folder):
+        if (folder / MARKER).is_file() and (folder / "calibration.json").is_file():  # finished by an earlier run
             row.update(status="done", resumed=True, wall_s=json.loads((folder / MARKER).read_text()).get("wall_s"))
     todo = [d for d in manifest.drives if rows[d.id]["status"] is None]
     skipped = len(manifest.drives) - len(todo)

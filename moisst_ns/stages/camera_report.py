@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict
 from pathlib import Path
 from typing import Optional
@@ -13,6 +12,7 @@ import numpy as np
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
 from moisst_ns.stages.camera_registration import CameraRegistrationConfig, CameraStageResult
+from moisst_ns.stages.lidar_report import truth_table, write_stage_files
 from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS
 
 REPORT_JSON = "camera_registration.json"
@@ -62,10 +62,7 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
 def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationConfig, start: Calibration, truth: Optional[Calibration],
                         out: Path) -> dict:
     """Write ``calibration.json``, ``camera_registration.json`` and ``camera_registration.md`` into ``out``."""
-    out.mkdir(parents=True, exist_ok=True)
-    result.calibration.write(out / "calibration.json")
     summary = stage_summary(result, config, start, truth)
-    (out / REPORT_JSON).write_text(json.dumps(summary, indent=1) + "\n")
     md = ["# Camera registration against the LiDAR map", "",
           f"Photometric consistency of {result.map_points} LiDAR map points between each camera's frames and the reference "
           "camera's (module `moisst_ns.stages.camera_registration`). Held-back cost: mean Huber cost of fresh pairs at the "
@@ -82,13 +79,9 @@ def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationCon
             sigma = "inf" if s["readout_sigma"] is None else f"{s['readout_sigma'] * 1000:.2f} ms"
             md += [f"Rolling-shutter readout: estimated {s['readout_estimate'] * 1000:.2f} ms (sigma {sigma}) from rig.json's "
                    f"{s['prior_readout_time'] * 1000:g} ms; used {s['readout_time'] * 1000:.2f} ms{'; ' + s['readout_note'] if s['readout_note'] else ''}.", ""]
-        if truth:
-            b, a = s["errors_before"], s["errors_after"]
-            md += ["| | translation (cm) | rotation (deg) | time (ms) |", "|---|---|---|---|",
-                   f"| start | {b['translation_cm']:.2f} | {b['rotation_deg']:.3f} | {b['time_ms']:.2f} |",
-                   f"| estimate | {a['translation_cm']:.2f} | {a['rotation_deg']:.4f} | {a['time_ms']:.3f} |", ""]
+        md += truth_table(s, "start") if truth else []
         md += ["| level | iteration | pairs | cost |", "|---|---|---|---|"]
         md += [f"| 1/{h['level']} | {h['iteration']} | {h['pairs']} | {h['cost']:.4f} |" for h in s["history"]]
         md += [""]
-    (out / REPORT_MD).write_text("\n".join(md))
+    write_stage_files(out, result.calibration, summary, md, REPORT_JSON, REPORT_MD)
     return summary

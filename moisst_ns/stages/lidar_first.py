@@ -35,7 +35,7 @@ from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, prior_residua
 from moisst_ns.stages.lidar_map import CameraStageError
 from moisst_ns.stages.lidar_scans import (  # noqa: F401 (ScanSet, load_scans, scan_pairs: the stage's data, imported from here too)
     Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, consistency_residuals, find_correspondences, load_scans, scan_pairs)
-from moisst_ns.stages.lidar_view import SharedView, view_residuals
+from moisst_ns.stages.lidar_view import SharedView, ViewSearch, search_held
 from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS, Observability, analyse_observability, huber_weights
 
 
@@ -60,25 +60,14 @@ class LidarResult:
     sigma_split: Optional[List[float]] = None
     """``split_half_spread`` in ``observability.PARAMETERS`` order (m, rad, s; NaN where a half cannot be fitted: not
     measured), or None when ``split_half`` is off."""
-
-
-def joint_residuals(traj: Trajectory, ext: Extrinsic, scans: ScanSet, corr: Correspondences, shared: Optional[SharedView],
-                    increment: np.ndarray, config: LidarFirstConfig) -> Tuple[Float[np.ndarray, "num"], Float[np.ndarray, "num 7"]]:
-    """The point-to-plane residuals (metres) followed by the edge distances times ``shared.scale``, and their Jacobian
-    (Jacobian order: rotation vector, translation, time offset)."""
-    residuals, jac = consistency_residuals(traj, ext, scans, corr, increment)
-    if shared is None or shared.rows is None or len(shared.rows.point) == 0:
-        return residuals, jac
-    res_v, jac_v = view_residuals(traj, ext, scans, shared.view, shared.rows, increment)
-    return np.concatenate([residuals, shared.scale * res_v]), np.concatenate([jac, shared.scale * jac_v])
+    view_search: Optional[Dict[str, object]] = None
+    """``view_search``: the columns searched, those placed, their sigma and the notes (``lidar_view.ViewSearch``)."""
 
 
 def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndarray, start: Extrinsic, prior: Extrinsic, free: np.ndarray,
-         config: LidarFirstConfig, log: Callable[[str], None], where: str,
-         view: Optional[SharedView] = None) -> Tuple[Extrinsic, List[Dict[str, float]]]:
+         config: LidarFirstConfig, log: Callable[[str], None], where: str) -> Tuple[Extrinsic, List[Dict[str, float]]]:
     """Coarse-to-fine outer iterations of the parameters ``free`` (Jacobian order: rotation, translation, delta) from
-    ``start``; ``prior`` anchors the bound on delta, ``where`` (``file: sensors.NAME``) names the sensor in errors,
-    ``view`` (the reference camera's frames and the scans' depth edges) adds the shared-view residuals.
+    ``start``; ``prior`` anchors the bound on delta, ``where`` (``file: sensors.NAME``) names the sensor in errors.
 
     Returns:
         The estimate and its per-iteration history (``LidarResult.history``).
@@ -99,8 +88,7 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
                 f"{where}: the scans do not overlap: {len(corr.src)} of {corr.candidates} "
                 f"sampled points found a planar neighbour within {radius:.2f} m in the paired scans (wrong trajectory, "
                 "time stamps or a static LiDAR?)")
-        at_start = consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0]  # the shared view's rows and the prior's unit
-        shared = view.at(traj, ext, scans, active, at_start) if view is not None else None
+        at_start = consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0]  # the prior's unit
         spent = ext.time_offset - prior.time_offset
         lower, upper = np.full(7, -np.inf), np.full(7, np.inf)
         lower[6], upper[6] = -config.max_time_offset - spent, config.max_time_offset - spent
@@ -112,7 +100,7 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
             if key not in cache:
                 inc = np.zeros(7)
                 inc[free] = free_inc
-                residuals, jac = joint_residuals(traj, ext, scans, corr, shared, inc, config)
+                residuals, jac = consistency_residuals(traj, ext, scans, corr, inc)
                 res_p, jac_p = prior_residuals(ext, prior, inc, sigma)
                 cache.clear()
                 cache[key] = (np.concatenate([residuals, scatter * res_p[anchored]]),
@@ -136,11 +124,7 @@ def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndar
             "elapsed_s": time.perf_counter() - begun, "T_ref_sensor": ext.matrix().tolist(), "time_offset": ext.time_offset,
         })
         h = history[-1]
-        if shared is not None:
-            edge_px = np.abs(solution.fun[len(corr.src):len(solution.fun) - len(anchored)]) / max(shared.scale, 1e-12)
-            h.update(view_rows=int(len(edge_px)), view_median_px=float(np.median(edge_px)) if len(edge_px) else float("nan"))
         log(f"[lidar-first] {sensor} it {outer}: radius {radius:.2f} m, pairs {h['pairs']}, {h['correspondences']} corr., "
-            + (f"{h['view_rows']} edge points at {h['view_median_px']:.2f} px, " if shared is not None else "")
             + f"inlier rms {1000 * h['inlier_rms_m']:.1f} mm, step {100 * change[0]:.2f} cm / {np.rad2deg(change[1]):.3f} deg / "
             f"{1000 * change[2]:.2f} ms")
         finest = radius <= config.radius_end and reach >= longest
@@ -172,23 +156,18 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     if len(free) == 0:
         raise LidarFirstError("estimate_extrinsic and estimate_time_offset are both off: nothing to calibrate")
     where = f"{rig.root / 'rig.json'}: sensors.{sensor}"
-    try:
-        view = SharedView.of(rig, traj, scans) if config.shared_view else None
-    except CameraStageError as err:
-        raise LidarFirstError(str(err)) from None
-    ext, history = _fit(traj, scans, pairs, baselines, prior, prior, free, config, log, where, view)
+    ext, history = _fit(traj, scans, pairs, baselines, prior, prior, free, config, log, where)
     fine = replace(config, radius_start=config.radius_end, start_baseline=float(baselines.max()) if len(baselines) else config.start_baseline)
     held_apart: List[int] = []
     while True:  # the fit, then (hold_split_half, every parameter estimated) again with what the halves disagree on held
         corr = find_correspondences(traj, ext, scans, pairs, config.radius_end, config)
-        shared = view.at(traj, ext, scans, pairs, consistency_residuals(traj, ext, scans, corr, np.zeros(7))[0]) if view is not None else None
-        residuals, jac = joint_residuals(traj, ext, scans, corr, shared, np.zeros(7), config)
+        residuals, jac = consistency_residuals(traj, ext, scans, corr, np.zeros(7))
         observability = analyse_observability(jac, residuals, huber_weights(residuals, config.huber), traj, scans.stamps + ext.time_offset, ext.rotation)
         split = None
         if config.split_half:
             def half(p: np.ndarray, b: np.ndarray, at: Extrinsic = ext, params: np.ndarray = free) -> Optional[Extrinsic]:
                 try:
-                    return _fit(traj, scans, p, b, at, prior, params, fine, lambda line: None, where, view)[0]
+                    return _fit(traj, scans, p, b, at, prior, params, fine, lambda line: None, where)[0]
                 except LidarFirstError:  # the half's scans do not overlap
                     return None
 
@@ -202,20 +181,49 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
         log(f"[lidar-first] {sensor}: the halves of the drive disagree on {', '.join(PARAMETERS[JACOBIAN_ORDER.index(j)] for j in apart)}"
             f" by more than {config.hold_split_half:g}x a typical prior error: fitted again from the prior with them held there")
         held_apart, free = held_apart + apart, np.array([j for j in free if j not in apart])
-        ext, again = _fit(traj, scans, pairs, baselines, prior, prior, free, config, log, where, view)
+        ext, again = _fit(traj, scans, pairs, baselines, prior, prior, free, config, log, where)
         history += again
-    if shared is not None:  # weak now means that neither the motion nor the shared view determines it
-        for dof in observability.dofs:
-            if dof.weak:
-                dof.reason += f"; nor do the {len(shared.rows.point)} LiDAR depth edges seen in the reference camera's frames"
+    searched = None
+    if config.view_search and any(j < 6 for j in held_apart) and rig.sensors[rig.reference_sensor].type == "camera":
+        try:
+            view = SharedView.of(rig, traj, scans)
+        except CameraStageError as err:
+            raise LidarFirstError(str(err)) from None
+        ext, searched = _place_by_view(traj, scans, pairs, baselines, ext, prior, free, held_apart, view, observability, split, fine, log, where)
     held = None
     if len(free) < 7 and config.release_check:
-        released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where, view)
+        released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where)
         held = release_check(ext, released, free, observability, expected=held_apart)
+        if searched is not None:  # a motion-only release cannot measure what the view placed
+            held["sigma_release"] = [0.0 if j in searched.accepted else v for v, j in zip(held["sigma_release"], JACOBIAN_ORDER)]
         if held["note"]:
             log(f"[lidar-first] {sensor}: {held['note']}")
     return LidarResult(sensor, prior, ext, history, observability, len(scans.stamps), scans.deskewed, scans.dropped,
-                       time.perf_counter() - start, held, split)
+                       time.perf_counter() - start, held, split, None if searched is None else searched.to_json())
+
+
+def _place_by_view(traj: Trajectory, scans: ScanSet, pairs, baselines, ext: Extrinsic, prior: Extrinsic, free, held: List[int],
+                   view: SharedView, observability: Observability, split: Optional[List[float]], fine: LidarFirstConfig,
+                   log: Callable[[str], None], where: str) -> Tuple[Extrinsic, ViewSearch]:
+    """``view_search``: the held rotations and lever-arm components searched on the shared view (``search_held``); the
+    placed ones leave the weak list with the search's sigma (into ``split`` too), the free parameters are fitted again."""
+    sensor = where.rsplit(".", 1)[-1]
+    shared = view.at(traj, ext, scans, pairs)
+    typical = np.array(TEST_STEPS)[np.argsort(JACOBIAN_ORDER)]  # per Jacobian column
+    found = search_held(traj, ext, scans, shared, pairs, sorted(j for j in held if j < 6), fine.hold_split_half, typical)
+    names = lambda cols: ", ".join(PARAMETERS[JACOBIAN_ORDER.index(j)] for j in cols) or "none"
+    log(f"[lidar-first] {sensor}: the shared view ({len(shared.rows.point)} depth edges, {found.evaluations} evaluations) places "
+        f"{names(found.accepted)} of {names(found.columns)}" + (f" ({'; '.join(found.notes)})" if found.notes else ""))
+    if not found.accepted:
+        return ext, found
+    ext = _fit(traj, scans, pairs, baselines, ext.updated(found.increment), prior, free, fine, log, where)[0]
+    for j in found.accepted:
+        i = JACOBIAN_ORDER.index(j)
+        dof = observability.dofs[i]
+        dof.weak, dof.reason = False, f"placed by the shared view (sigma {found.sigma[j] * UNITS[i][0]:.3g} {UNITS[i][1]})"
+        if split is not None:
+            split[i] = float(found.sigma[j])
+    return ext, found
 
 
 @dataclass

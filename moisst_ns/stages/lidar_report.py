@@ -65,13 +65,26 @@ def observability_lines(result: LidarResult) -> List[str]:
     return lines
 
 
+def write_stage_files(out: Path, calibration: Calibration, summary: dict, md: List[str], report_json: str, report_md: str) -> None:
+    """Write a stage's ``calibration.json``, ``summary`` (``report_json``) and ``md`` (``report_md``) into ``out`` (the camera stage's too)."""
+    out.mkdir(parents=True, exist_ok=True)
+    calibration.write(out / "calibration.json")
+    (out / report_json).write_text(json.dumps(summary, indent=1) + "\n")
+    (out / report_md).write_text("\n".join(md))
+
+
+def truth_table(sensor: dict, start: str) -> List[str]:
+    """A stage report's markdown table of one sensor's ``errors_before`` (row ``start``) and ``errors_after`` the truth."""
+    b, a = sensor["errors_before"], sensor["errors_after"]
+    return ["| | translation (cm) | rotation (deg) | time (ms) |", "|---|---|---|---|",
+            f"| {start} | {b['translation_cm']:.2f} | {b['rotation_deg']:.3f} | {b['time_ms']:.2f} |",
+            f"| estimate | {a['translation_cm']:.2f} | {a['rotation_deg']:.4f} | {a['time_ms']:.3f} |", ""]
+
+
 def write_stage_outputs(result: LidarFirstResult, config: LidarFirstConfig, prior: Calibration, truth: Optional[Calibration],
                         out: Path) -> dict:
     """Write ``calibration.json``, ``lidar_first.json``, ``lidar_first.md`` and the convergence plot into ``out``."""
-    out.mkdir(parents=True, exist_ok=True)
-    result.calibration.write(out / "calibration.json")
     summary = stage_summary(result, config, prior, truth)
-    (out / REPORT_JSON).write_text(json.dumps(summary, indent=1) + "\n")
     md = ["# LiDAR-first stage", "",
           "Each LiDAR calibrated against the reference trajectory from its own scans (point-to-plane scan consistency).",
           f"A parameter is weak when a typical prior error (10 cm, 1 deg, 10 ms) changes the residuals by < {1000 * MIN_EFFECT:.0f} mm RMS.", ""]
@@ -81,18 +94,14 @@ def write_stage_outputs(result: LidarFirstResult, config: LidarFirstConfig, prio
         md += [f"## {name}", "", f"{r.num_scans} scans ({'raw sweeps, de-skewed' if r.deskewed else 'no per-point times'}), "
                f"{len(r.history)} outer iterations, {r.wall_s:.1f} s. Change from the prior: {c['translation_cm']:.2f} cm, "
                f"{c['rotation_deg']:.3f} deg, {c['time_ms']:+.2f} ms.", ""]
-        if truth:
-            b, a = s["errors_before"], s["errors_after"]
-            md += ["| | translation (cm) | rotation (deg) | time (ms) |", "|---|---|---|---|",
-                   f"| prior | {b['translation_cm']:.2f} | {b['rotation_deg']:.3f} | {b['time_ms']:.2f} |",
-                   f"| estimate | {a['translation_cm']:.2f} | {a['rotation_deg']:.4f} | {a['time_ms']:.3f} |", ""]
+        md += truth_table(s, "prior") if truth else []
         md += ["```", *observability_lines(r), "```", ""]
         md += ["| iteration | radius (m) | pairs | correspondences | inlier RMS (mm) | step (cm / deg / ms) |", "|---|---|---|---|---|---|"]
         md += [f"| {h['iteration']} | {h['radius_m']:.2f} | {h['pairs']} | {h['correspondences']} | {1000 * h['inlier_rms_m']:.2f} | "
                f"{100 * h['change_m']:.3f} / {np.rad2deg(h['change_rad']):.4f} / {1000 * h['change_s']:.3f} |" for h in r.history]
         md += [""]
     md += [f"![convergence]({PLOT})", ""]
-    (out / REPORT_MD).write_text("\n".join(md))
+    write_stage_files(out, result.calibration, summary, md, REPORT_JSON, REPORT_MD)
     _plot(result, out / PLOT)
     return summary
 

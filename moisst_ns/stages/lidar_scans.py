@@ -87,9 +87,10 @@ class LidarFirstConfig:
     """Parameters whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms; the camera stage's
     rule) are not determined by the drive: fitted again from the prior with them held there, their sigma is how far the
     release fit moves them; 0 never holds. KITTI raw 0048, free: 134 cm / 5.3 deg off, the halves 44-145 cm apart."""
-    shared_view: bool = False
-    """Fit the LiDAR depth edges to the reference camera's image edges too (``lidar_view``), each kind in units of its own
-    scatter. Off: it did not place KITTI raw 0048's Velodyne (docs/lab/2026-11-25-kitti-shared-view.md)."""
+    view_search: bool = True
+    """Where the halves hold rotations or lever-arm components at the prior and the reference sensor is a camera: place
+    them by the reference camera's view of the LiDAR's depth edges (``lidar_view.search_held``), then fit the free
+    parameters again around them."""
 
 
 

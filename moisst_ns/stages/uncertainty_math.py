@@ -31,12 +31,6 @@ class LeastSquaresSigma:
     """Reported standard deviation per parameter: max of classical and cluster-robust (parameter units)."""
     classical: Float[np.ndarray, "p"]
     """``sqrt(diag(s^2 H^-1))``."""
-    robust: Float[np.ndarray, "p"]
-    """``sqrt(diag)`` of the cluster-robust sandwich (nan with fewer than 2 clusters)."""
-    residual_rms: float
-    """``s``, residual units."""
-    clusters: int
-    """Number of clusters."""
 
 
 def least_squares_sigma(
@@ -76,7 +70,7 @@ def least_squares_sigma(
     sigma = np.fmax(classical, robust)
     sigma[free] = np.inf
     classical[free] = np.inf
-    return LeastSquaresSigma(sigma, classical, robust, float(np.sqrt(s2)), groups)
+    return LeastSquaresSigma(sigma, classical)
 
 
 def inherited_sigma(ref_T_lidar: Float[np.ndarray, "4 4"], ref_T_camera: Float[np.ndarray, "4 4"],
