@@ -115,13 +115,12 @@ def camera_depth_errors(
 
 
 def synthetic_scene(rig_root: Path):
-    """``(SynthConfig, ray-castable scene)`` of a ``moisst-synth`` rig (its rig.json ``metadata`` names it), else
-    ``(None, None)``."""
+    """The ray-castable scene of a ``moisst-synth`` rig (its rig.json ``metadata`` names it), else None."""
     from moisst_ns.datasets.synth import build_scene
     from moisst_ns.datasets.synth_truth import config_of_rig
 
     synth = config_of_rig(json.loads((rig_root / "rig.json").read_text()).get("metadata", {}))
-    return (synth, build_scene(synth)) if synth is not None else (None, None)
+    return build_scene(synth) if synth is not None else None
 
 
 def scene_depth_check(pipeline, rig_root: Path, num_rays: int) -> Dict[str, float]:
@@ -141,7 +140,7 @@ def scene_depth_check(pipeline, rig_root: Path, num_rays: int) -> Dict[str, floa
 
     from moisst_ns.datasets.synth_truth import in_lidar_field
 
-    synth, scene = synthetic_scene(Path(rig_root))
+    scene = synthetic_scene(Path(rig_root))
     model, datamanager = pipeline.model, pipeline.datamanager
     optimizer = model.camera_optimizer
     rig = optimizer.rig
@@ -175,7 +174,7 @@ def scene_depth_check(pipeline, rig_root: Path, num_rays: int) -> Dict[str, floa
             for lidar in lidars:
                 world_T_lidar = c2w @ np.linalg.inv(extrinsics[sensor]) @ extrinsics[lidar]
                 local = np.einsum("nji,nj->ni", world_T_lidar[:, :3, :3], points - world_T_lidar[:, :3, 3])
-                seen |= in_lidar_field(local, synth)
+                seen |= in_lidar_field(local)
             rendered.append(depth[cam])
             truth.append(hit)
             in_field.append(seen)
@@ -237,7 +236,7 @@ def stages_floor(rig, truth) -> dict:
     from moisst_ns.stages.stage_floor import map_depth_errors, stage_floor
 
     measured = stage_floor(rig, truth, log=lambda line: None)
-    scene = synthetic_scene(rig.root)[1] if any(s.type == "lidar" for s in rig.sensors.values()) else None
+    scene = synthetic_scene(rig.root) if any(s.type == "lidar" for s in rig.sensors.values()) else None
     if scene is not None:
         measured["map_depth"] = map_depth_errors(rig, truth, lambda o, d: scene.cast(o, d)["t_hit"].astype(np.float64))
     return measured

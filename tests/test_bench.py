@@ -1,7 +1,6 @@
 """moisst-bench: scenario validation, aggregation (exact values) and a micro run through every table."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -1,7 +1,6 @@
 """CalibrationOptimizer: identity at zero correction, exact ray regeneration, gradients to extrinsic and delta."""
 
 import json
-import shutil
 
 import numpy as np
 import pytest

@@ -1,6 +1,5 @@
 """KITTI-360 loader and converter, on a tiny sequence written in the dataset's exact layout from a synthetic rig."""
 
-import json
 import shutil
 import subprocess
 import sys

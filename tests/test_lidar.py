@@ -1,6 +1,5 @@
 """LiDAR rays against hand-computed values, the depth loss, and LiDAR input handling."""
 
-import math
 
 import numpy as np
 import pytest

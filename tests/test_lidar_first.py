@@ -16,10 +16,10 @@ import torch
 from moisst_ns.cli.lidar_calibrate import LidarCalibrateConfig, run_lidar_calibration
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import load_calibration, load_lidar_scan, load_rig
-from moisst_ns.rig.geometry import calibrated_extrinsic, interpolate_trajectory, make_pose
+from moisst_ns.rig.geometry import calibrated_extrinsic, interpolate_trajectory
 from moisst_ns.stages.lidar_first import Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, calibrate_lidars, consistency_residuals
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points, placement_jacobian
-from moisst_ns.stages.observability import PARAMETERS, TEST_STEPS, analyse_observability
+from moisst_ns.stages.observability import PARAMETERS, analyse_observability
 from moisst_ns.datasets.synth import SynthConfig, build_scene, make_rig
 from helpers import tree_hash
 

@@ -81,7 +81,7 @@ def test_map_ranges_are_the_true_surface_along_the_training_rays(rig_and_dataman
     origins = ray_bundle.origins[camera].double().numpy() / world.scale + np.asarray(world.center)
     dirs = ray_bundle.directions[camera].double().numpy()
     dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
-    _, scene = synthetic_scene(root)
+    scene = synthetic_scene(root)
     hit = scene.cast(origins[has], dirs[has])["t_hit"].astype(np.float64)
     error = np.abs(target[has] / world.scale - hit)
     assert np.median(error) < 0.05 and np.percentile(error, 75) < 0.15  # metres, 5 cm map voxels on 64x48 pixels

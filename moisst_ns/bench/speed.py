@@ -57,7 +57,7 @@ def speed_rig(out: Path) -> Path:
     return folder
 
 
-def _trainer(kind: Literal["moisst", "nerfacto"], preset: str, rig: Path, out: Path, lidar: bool, seed: int = 0):
+def _trainer(kind: Literal["moisst", "nerfacto"], preset: str, rig: Path, out: Path, lidar: bool):
     """A set-up nerfstudio trainer of the preset's full run; returns (trainer, steps of the run, set-up seconds)."""
     from moisst_ns.bench.baseline import nerfacto_trainer_config
     from moisst_ns.method_configs import DEFAULT_ITERATIONS
@@ -68,7 +68,7 @@ def _trainer(kind: Literal["moisst", "nerfacto"], preset: str, rig: Path, out: P
     steps = DEFAULT_ITERATIONS[preset]
     shutil.rmtree(out, ignore_errors=True)
     if kind == "moisst":
-        cfg = CalibrateConfig(dataset=rig, output_dir=out, method=preset, lidar_rays=None if lidar else 0, report=False, seed=seed)
+        cfg = CalibrateConfig(dataset=rig, output_dir=out, method=preset, lidar_rays=None if lidar else 0, report=False, seed=0)
         config = calibrate_trainer_config(cfg, rig, out, steps)
         config.pipeline = VanillaPipelineConfig(datamanager=config.pipeline.datamanager, model=config.pipeline.model)  # the NeRF's steps alone
     else:
@@ -76,8 +76,8 @@ def _trainer(kind: Literal["moisst", "nerfacto"], preset: str, rig: Path, out: P
         config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = rig
         config.output_dir, config.experiment_name, config.timestamp = out, ".", "run"
     config.vis = "tensorboard"
-    config.machine.seed = seed
-    seed_everything(seed)
+    config.machine.seed = 0
+    seed_everything(0)
     started = time.perf_counter()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
@@ -111,13 +111,12 @@ def step_seconds(trainer, steps: int, plan: SpeedPlan) -> float:
     return (time.perf_counter() - started) / plan.timed_steps
 
 
-def run_speed(out: Path, machine: dict, presets: Tuple[str, ...] = PRESETS) -> dict:
+def run_speed(out: Path, machine: dict) -> dict:
     """Measure the speed table and write ``out/speed.json``.
 
     Args:
         out: output folder.
         machine: what it runs on (``moisst_ns.bench.run.machine``), recorded in the JSON.
-        presets: which presets to measure.
 
     Returns:
         ``{"presets": {preset: {"s_per_step", "nerfacto_s_per_step", "ratio", "s_per_step_lidar", "ratio_lidar",
@@ -129,7 +128,7 @@ def run_speed(out: Path, machine: dict, presets: Tuple[str, ...] = PRESETS) -> d
     out.mkdir(parents=True, exist_ok=True)
     rig = speed_rig(out)
     result: dict = {"presets": {}, "machine": machine, "rig": str(rig), "torch_threads": torch.get_num_threads()}
-    for preset in presets:
+    for preset in PRESETS:
         plan = PLANS[preset]
         row: dict = {"steps_timed": plan.timed_steps, "setup_s": {}}
         for name, kind, lidar in (("nerfacto", "nerfacto", False), ("cameras", "moisst", False), ("lidar", "moisst", True)):

@@ -27,12 +27,11 @@ def config_of_rig(metadata: dict) -> Optional[SynthConfig]:
     return SynthConfig(out=Path("."), **{k: v for k, v in metadata.items() if k in names})
 
 
-def in_lidar_field(points: np.ndarray, config: SynthConfig) -> np.ndarray:
+def in_lidar_field(points: np.ndarray) -> np.ndarray:
     """Which points (LiDAR frame, metres) the synthetic LiDAR can measure: range and beam elevation limits.
 
     Args:
         points: (N, 3) points in the LiDAR frame, metres.
-        config: The rig's configuration (beam layout).
 
     Returns:
         (N,) boolean mask.

@@ -26,14 +26,13 @@ from dataclasses import dataclass, replace
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from jaxtyping import Float
 from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.stages.lidar_checks import release_check, split_half_spread
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, prior_residuals
 from moisst_ns.stages.lidar_map import CameraStageError
-from moisst_ns.stages.lidar_scans import (  # noqa: F401 (ScanSet, load_scans, scan_pairs: the stage's data, imported from here too)
+from moisst_ns.stages.lidar_scans import (  # noqa: F401 (Correspondences, ScanSet, load_scans, scan_pairs: the stage's data, imported from here too)
     Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, consistency_residuals, find_correspondences, load_scans, scan_pairs)
 from moisst_ns.stages.lidar_view import SharedView, ViewSearch, search_held
 from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS, Observability, analyse_observability, huber_weights

@@ -42,17 +42,15 @@ def rig_at(rig: Rig, calibration: Calibration) -> Rig:
     return dataclasses.replace(rig, sensors=sensors)
 
 
-def stage_floor(rig: Rig, truth: Calibration, lidar_config: Optional[LidarFirstConfig] = None,
-                camera_config: Optional[CameraRegistrationConfig] = None, cameras: Optional[Sequence[str]] = None,
+def stage_floor(rig: Rig, truth: Calibration, cameras: Optional[Sequence[str]] = None,
                 log: Callable[[str], None] = print) -> Dict[str, object]:
-    """Run both stages from the true calibration and report how far their fits move from it.
+    """Run both stages, with their default settings, from the true calibration and report how far their fits move
+    from it. The camera registration's feature start is switched off (it is for the basin, and the start is the truth
+    here), and so are the split-half and typical-error tests.
 
     Args:
         rig: the dataset (its priors are ignored).
         truth: the true calibration (``ground_truth.json``).
-        lidar_config: LiDAR-first settings (the defaults when None).
-        camera_config: camera-registration settings (the defaults when None); the feature start is switched off (it
-            is for the basin, and the start is the truth here), and so are the split-half and typical-error tests.
         cameras: the cameras to fit (default: every non-reference camera).
         log: where progress lines go.
 
@@ -63,10 +61,10 @@ def stage_floor(rig: Rig, truth: Calibration, lidar_config: Optional[LidarFirstC
     at_truth = rig_at(rig, truth)
     start = time.perf_counter()
     lidars = lidar_sensors(at_truth)
-    calibration = calibrate_lidars(at_truth, lidar_config or LidarFirstConfig(), log=log).calibration if lidars else Calibration.from_rig(at_truth)
+    calibration = calibrate_lidars(at_truth, LidarFirstConfig(), log=log).calibration if lidars else Calibration.from_rig(at_truth)
     lidar_s = time.perf_counter() - start
     # the guards' extra solves and draws come after the descent and are not asked here
-    config = dataclasses.replace(camera_config or CameraRegistrationConfig(), feature_start=False, split_half=False, min_significance=0.0)
+    config = CameraRegistrationConfig(feature_start=False, split_half=False, min_significance=0.0)
     floor = Calibration(truth.reference_sensor, dict(calibration.T_ref_sensor), dict(calibration.time_offset))
     unfitted: List[str] = []
     fitted = set(lidars)
@@ -84,8 +82,7 @@ def stage_floor(rig: Rig, truth: Calibration, lidar_config: Optional[LidarFirstC
     return {"floor": errors, "unfitted": unfitted, "lidar_s": lidar_s, "camera_s": time.perf_counter() - start - lidar_s}
 
 
-def map_depth_errors(rig: Rig, truth: Calibration, cast: RayCaster, config: Optional[CameraRegistrationConfig] = None,
-                     frame_step: int = 5) -> Dict[str, float]:
+def map_depth_errors(rig: Rig, truth: Calibration, cast: RayCaster, frame_step: int = 5) -> Dict[str, float]:
     """Depth errors of the LiDAR map where the cameras' fits look, against the true surface.
 
     For every camera (the reference too) and every ``frame_step``-th frame, at the true calibration: the map points the
@@ -96,13 +93,12 @@ def map_depth_errors(rig: Rig, truth: Calibration, cast: RayCaster, config: Opti
         rig: the dataset, with at least one LiDAR.
         truth: the true calibration (the map and the camera poses are built from it).
         cast: the true scene's ray caster.
-        config: camera-registration settings (map voxel, occlusion margins, points per frame).
         frame_step: use every this many frames of each camera.
 
     Returns:
         ``{"map_points", "camera_rays", "median_abs_m", "p90_abs_m"}`` over the rays that hit a true surface.
     """
-    config = config or CameraRegistrationConfig()
+    config = CameraRegistrationConfig()
     at_truth = rig_at(rig, truth)
     world = lidar_map(at_truth, truth, config.map_voxel, config.min_range, log=lambda s: None)
     traj = ReferenceTrajectory.of(rig)
