@@ -187,6 +187,25 @@ def test_view_search_places_the_along_track_lever_arm_the_street_view_sees(synth
     assert found.sigma[5] >= GRID_FINEST[1] and np.isnan(found.sigma[:5]).all()
 
 
+def test_the_stage_report_keeps_what_the_view_placed(synth):
+    """``lidar_first.json`` carries the search of each LiDAR (``view_search``): the columns searched and placed, the
+    increment and the sigma (null where not placed), as JSON."""
+    from types import SimpleNamespace
+
+    from moisst_ns.rig.format import Calibration
+    from moisst_ns.stages.lidar_first import LidarFirstResult, LidarResult
+    from moisst_ns.stages.lidar_report import stage_summary
+
+    found, _ = search_from(dict(synth, gt=synth["ext"]), np.r_[0, 0, 0, 0, 0, 0.4, 0], [5])
+    ext, calibration = synth["ext"], Calibration.from_rig(synth["rig"])
+    result = LidarResult("lidar", ext, ext.updated(found.increment), [], SimpleNamespace(dofs=[], weak=[]), 10, True, [], 1.0,
+                         view_search=found.to_json())
+    summary = json.loads(json.dumps(stage_summary(LidarFirstResult(calibration, {"lidar": result}), LidarFirstConfig(), calibration, None)))
+    entry = summary["sensors"]["lidar"]["view_search"]
+    assert entry["columns"] == [5] and entry["accepted"] == [5]
+    assert entry["increment"][5] == found.increment[5] != 0.0 and entry["sigma"][0] is None and entry["sigma"][5] > 0
+
+
 def test_view_search_refuses_what_the_street_view_does_not_see(synth):
     """The same street's view does not tell the vertical lever arm nor the roll apart (their median edge distance
     varies by under 10 % over 2 deg / 20 cm): moved 30 cm and 2.9 deg, both are refused with the median's profile in

@@ -48,6 +48,8 @@ def stage_summary(result: LidarFirstResult, config: LidarFirstConfig, prior: Cal
             entry["held_check"] = r.held_check
         if r.sigma_split is not None:  # half the difference of the drive's two halves (None: a half could not be fitted)
             entry["sigma_split_half"] = [float(v) if np.isfinite(v) else None for v in r.sigma_split]
+        if r.view_search is not None:
+            entry["view_search"] = r.view_search
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry
