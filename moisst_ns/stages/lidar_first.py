@@ -188,7 +188,7 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
             view = SharedView.of(rig, traj, scans)
         except CameraStageError as err:
             raise LidarFirstError(str(err)) from None
-        ext, searched = _place_by_view(traj, scans, pairs, baselines, ext, prior, free, held_apart, view, observability, split, fine, log, where)
+        ext, searched = _place_by_view(sensor, traj, scans, pairs, baselines, ext, prior, free, held_apart, view, observability, split, fine, log, where)
     held = None
     if len(free) < 7 and config.release_check:
         released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where)
@@ -201,12 +201,11 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
                        time.perf_counter() - start, held, split, None if searched is None else searched.to_json())
 
 
-def _place_by_view(traj: Trajectory, scans: ScanSet, pairs, baselines, ext: Extrinsic, prior: Extrinsic, free, held: List[int],
+def _place_by_view(sensor: str, traj: Trajectory, scans: ScanSet, pairs, baselines, ext: Extrinsic, prior: Extrinsic, free, held: List[int],
                    view: SharedView, observability: Observability, split: Optional[List[float]], fine: LidarFirstConfig,
                    log: Callable[[str], None], where: str) -> Tuple[Extrinsic, ViewSearch]:
     """``view_search``: the held rotations and lever-arm components searched on the shared view (``search_held``); the
     placed ones leave the weak list with the search's sigma (into ``split`` too), the free parameters are fitted again."""
-    sensor = where.rsplit(".", 1)[-1]
     shared = view.at(traj, ext, scans, pairs)
     typical = np.array(TEST_STEPS)[np.argsort(JACOBIAN_ORDER)]  # per Jacobian column
     found = search_held(traj, ext, scans, shared, pairs, sorted(j for j in held if j < 6), fine.hold_split_half, typical)

@@ -30,6 +30,7 @@ from moisst_ns.rig.format import Rig
 from moisst_ns.rig.geometry import row_times
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points
 from moisst_ns.stages.lidar_map import CameraStageError, ImageStack, PinholeModel, bilinear, project, visible
+from moisst_ns.stages.photometric import huber_costs
 
 MIN_DEPTH = 3.0
 """Points nearer than this to the camera are not used (the vehicle, and a pixel's footprint varies fast), metres."""
@@ -310,26 +311,25 @@ def search_held(traj: Trajectory, ext: Extrinsic, scans, shared: SharedView, pai
 
     rows = shared.rows
     first = scans.stamps[np.searchsorted(scans.offsets, rows.point, side="right") - 1] < np.median(scans.stamps)
-    huber = lambda d: np.where(d < HUBER_PX, 0.5 * d**2, HUBER_PX * (d - 0.5 * HUBER_PX))
+    span = lambda c: GRID[0] if c < 3 else GRID[2]  # a column's half-span and coarse step
+    step = lambda c: GRID[1] if c < 3 else GRID[3]
 
     def grid(cols: List[int], centre: np.ndarray, spans: np.ndarray, steps: np.ndarray, base: np.ndarray):
         axes = [c + np.arange(-s, s + d / 2, d) for c, s, d in zip(centre, spans, steps)]
         values = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(cols))
-        costs = np.array([(lambda h: (h.mean(), h[first].mean(), h[~first].mean()))(huber(distances(rows, base + increment_of(cols, v))))
+        costs = np.array([(lambda h: (h.mean(), h[first].mean(), h[~first].mean()))(huber_costs(distances(rows, base + increment_of(cols, v)), HUBER_PX))
                           for v in values])
         return values[np.argmin(costs, axis=0)]  # minima of the whole drive, the first and the second half
 
     def joint(cols: List[int], base: np.ndarray):
         """The grid's minima over ``cols`` (coarse to fine) with the other columns at ``base``: whole drive, halves, and
-        the coarse and finest steps."""
-        spans = np.array([GRID[0] if c < 3 else GRID[2] for c in cols])
-        steps = np.array([GRID[1] if c < 3 else GRID[3] for c in cols])
-        best, a, b = grid(cols, np.zeros(len(cols)), spans, steps, base)
-        finest = steps
+        the finest step."""
+        spans, finest = np.array([span(c) for c in cols]), np.array([step(c) for c in cols])
+        best, a, b = grid(cols, np.zeros(len(cols)), spans, finest, base)
         for _ in range(REFINEMENTS):
             spans, finest = finest, finest / 4
             best, a, b = grid(cols, best, spans, finest, base)
-        return best, a, b, steps, finest
+        return best, a, b, finest
 
     cols = [c for c in columns if c < 6]
     if not cols or len(rows.point) == 0:
@@ -337,8 +337,7 @@ def search_held(traj: Trajectory, ext: Extrinsic, scans, shared: SharedView, pai
     notes: List[str] = []
     accepted, spread = cols, {}
     while accepted:  # the grid over what is left: a column sent back to ``ext`` changes the others' joint minimum
-        best, a, b, steps, finest = joint(accepted, np.zeros(7))
-        coarse = dict(zip(accepted, steps))
+        best, a, b, finest = joint(accepted, np.zeros(7))
         found, halves, fine = dict(zip(accepted, best)), dict(zip(accepted, np.abs(a - b) / 2)), dict(zip(accepted, finest))
         apart = [c for c in accepted if halves[c] > hold * typical[c]]
         if apart:
@@ -353,7 +352,7 @@ def search_held(traj: Trajectory, ext: Extrinsic, scans, shared: SharedView, pai
         base = distances(seen, at)
         shares, profiles = {}, {}
         for c in accepted:
-            offsets = np.arange(-4, 5) * coarse[c] / 2
+            offsets = np.arange(-4, 5) * step(c) / 2
             d = np.stack([base if o == 0 else distances(seen, at + increment_of([c], np.array([o]))) for o in offsets])
             profiles[c] = np.median(d, axis=1)
             low = np.argmin(np.stack([np.median(d[:, k], axis=1) for k in draws]), axis=1)  # per resample
@@ -368,7 +367,7 @@ def search_held(traj: Trajectory, ext: Extrinsic, scans, shared: SharedView, pai
         shift = {c: 0.0 for c in accepted}  # what the columns left undetermined could do to the placed ones
         for r in (c for c in cols if c not in accepted):
             for sign in (-1.0, 1.0):
-                again = joint(accepted, increment_of([r], np.array([sign * (GRID[0] if r < 3 else GRID[2])])))[0]
+                again = joint(accepted, increment_of([r], np.array([sign * span(r)])))[0]
                 for c, v in zip(accepted, again):
                     shift[c] = max(shift[c], abs(v - found[c]))
         worst = max(accepted, key=lambda c: shift[c] / typical[c])
