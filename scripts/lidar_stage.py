@@ -2,7 +2,7 @@
 shared view"): prints each LiDAR's error per axis (cm, deg, ms), its weak parameters, formal sigmas and wall time.
 
 Usage: .venv/bin/python scripts/lidar_stage.py RIG [FIELD=VALUE ...]
-(e.g. ``view_search=False split_half=False points_per_scan=1000``.)
+(e.g. ``view_search=False split_half=False points_per_scan=1000``; ``save=PATH`` writes the calibration there.)
 """
 
 from __future__ import annotations
@@ -20,12 +20,17 @@ from moisst_ns.stages.lidar_first import LidarFirstConfig, calibrate_lidars
 def main() -> None:
     rig = load_rig(sys.argv[1])
     truth = load_calibration(rig.root / "ground_truth.json")
-    changes = {}
+    changes, save = {}, None
     for arg in sys.argv[2:]:
         key, value = arg.split("=", 1)
+        if key == "save":
+            save = value
+            continue
         changes[key] = type(getattr(LidarFirstConfig, key))(eval(value))
     start = time.time()
     result = calibrate_lidars(rig, LidarFirstConfig(**changes), log=lambda line: print(line, flush=True))
+    if save:
+        result.calibration.write(save)
     for name, lidar in result.lidars.items():
         d = np.array(parameter_difference(result.calibration.T_ref_sensor[name], result.calibration.time_offset[name],
                                           truth.T_ref_sensor[name], truth.time_offset[name]))
