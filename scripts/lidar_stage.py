@@ -1,5 +1,6 @@
 """The LiDAR-first stage alone on a rig with ground truth, with ``LidarFirstConfig`` changes (docs/lidar-first.md, "The
-shared view"): prints each LiDAR's error per axis (cm, deg, ms), its weak parameters, formal sigmas and wall time.
+shared view"): prints each LiDAR's error per axis (cm, deg, ms), its weak parameters, formal sigmas, the split-half
+sigmas (the shared view's for what it placed; m, rad, s) and wall time.
 
 Usage: .venv/bin/python scripts/lidar_stage.py RIG [FIELD=VALUE ...]
 (e.g. ``view_search=False split_half=False points_per_scan=1000``; ``save=PATH`` writes the calibration there.)
@@ -37,7 +38,8 @@ def main() -> None:
         print(f"RESULT {sys.argv[1]} {changes} {name}: error {np.linalg.norm(d[:3]) * 100:.2f} cm "
               f"{np.rad2deg(np.linalg.norm(d[3:6])):.3f} deg {abs(d[6]) * 1000:.2f} ms; per axis cm {np.round(d[:3] * 100, 2)} "
               f"deg {np.round(np.rad2deg(d[3:6]), 3)}; weak {lidar.observability.weak}; "
-              f"sigma {[f'{x.sigma:.3g}' for x in lidar.observability.dofs]}; wall {time.time() - start:.0f} s")
+              f"sigma {[f'{x.sigma:.3g}' for x in lidar.observability.dofs]}; split-half / placed sigma "
+              f"{None if lidar.sigma_split is None else [f'{x:.3g}' for x in lidar.sigma_split]}; wall {time.time() - start:.0f} s")
 
 
 if __name__ == "__main__":

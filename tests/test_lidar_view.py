@@ -24,7 +24,7 @@ from moisst_ns.stages.lidar_first import (
 )
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory
 from moisst_ns.stages.lidar_map import CameraStageError
-from moisst_ns.stages.lidar_view import GRID, JUMP, MAX_DISTANCE, NEIGHBOUR_DEG, REFINEMENTS, depth_edges, edge_distance, search_held, view_residuals
+from moisst_ns.stages.lidar_view import GRID, JUMP, MAX_DISTANCE, MAX_RING_GAP_DEG, NEIGHBOUR_DEG, REFINEMENTS, depth_edges, edge_distance, search_held, view_residuals
 from moisst_ns.stages.observability import JACOBIAN_ORDER, TEST_STEPS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti-raw-2011_09_26_drive_0048"
@@ -101,15 +101,80 @@ def test_depth_edges_ignore_smooth_range_changes():
     assert len(depth_edges(ramp)) == 0
 
 
-def test_depth_edges_never_compare_points_of_different_rings():
+def test_depth_edges_never_compare_points_of_different_rings_along_azimuth():
     """Rings at the same azimuths whose ranges differ wildly (5, 30, 12 m), each constant along azimuth: no edge (sorted
-    by azimuth alone, every point would neighbour a point of another ring)."""
+    by azimuth alone, every point would neighbour a point of another ring; across rings, 0 and 0.5 deg have no third
+    ring within ``MAX_RING_GAP_DEG`` to continue the surface by, and -5 deg is too far from either)."""
     ranges = {0.0: 5.0, 0.5: 30.0, -5.0: 12.0}
     points, _, _ = spherical_scan(sorted(ranges), AZIMUTHS, lambda e, a: ranges[e])
     assert len(depth_edges(shuffled(points, seed=1)[0])) == 0
     # the rings are far apart in elevation, yet each one alone still finds a box
     with_box, _, az = spherical_scan(sorted(ranges), AZIMUTHS, lambda e, a: ranges[e] * (0.5 if e == 0.5 and 0.0 <= a <= 5.0 + 1e-9 else 1.0))
     np.testing.assert_array_equal(depth_edges(with_box), np.flatnonzero(np.isin(np.round(az, 6), [0.0, 5.0]) & (with_box[:, 2] > 0)))
+
+
+def test_depth_edges_across_rings_are_the_top_of_a_box():
+    """A box at 8 m up to elevation 0 deg over azimuths 10..14 deg, a wall at 20 m, rings every degree from -4 to 4:
+    its sides on every ring it covers, and its top row (the 0 deg ring, the one under the wall) across rings; never a
+    wall point, nor a box point below the top."""
+    points, el, az = spherical_scan(np.arange(-4.0, 4.5), AZIMUTHS, lambda e, a: 8.0 if 10 - 1e-9 <= a <= 14 + 1e-9 and e <= 0 else 20.0)
+    points, el, az = shuffled(points, el, az)
+    sides = (np.isclose(az, 10.0) | np.isclose(az, 14.0)) & (el <= 0)
+    top = np.isclose(el, 0.0) & (az > 10 - 1e-9) & (az < 14 + 1e-9)
+    assert sides.sum() == 10 and top.sum() == 21
+    np.testing.assert_array_equal(depth_edges(points), np.flatnonzero(sides | top))
+    # and upside down (an overhang: the box from 0 deg up): its lowest row
+    points, el, az = spherical_scan(np.arange(-4.0, 4.5), AZIMUTHS, lambda e, a: 8.0 if 10 - 1e-9 <= a <= 14 + 1e-9 and e >= 0 else 20.0)
+    bottom = np.isclose(el, 0.0) & (az > 10 - 1e-9) & (az < 14 + 1e-9)
+    np.testing.assert_array_equal(depth_edges(points), np.flatnonzero(((np.isclose(az, 10.0) | np.isclose(az, 14.0)) & (el >= 0)) | bottom))
+
+
+def test_depth_edges_not_on_flat_ground_at_grazing_incidence():
+    """Flat ground 1.7 m below a 32-beam scanner (1.13 deg between rings, as ``moisst-synth``'s): the range jumps between
+    adjacent rings by more than the threshold (19 m to 25 m near -5 deg, more towards the horizon), yet the ground
+    continues the line through the ring below: no edge. A kerb-less step down of 1 m from 30 m on is one: the ring
+    that first sees beyond it."""
+    rings = -25.0 + 35.0 / 31 * np.arange(32)
+    rings = rings[rings < -1.0]
+    flat, el, _ = spherical_scan(rings, AZIMUTHS, lambda e, a: 1.7 / np.sin(np.radians(-e)))
+    r = np.linalg.norm(flat, axis=1)
+    by_ring = np.array([r[el == e][0] for e in rings])
+    assert np.any(np.diff(by_ring) > JUMP[0] + JUMP[1] * by_ring[:-1])  # the plain jump rule alone would fire
+    assert len(depth_edges(shuffled(flat)[0])) == 0
+    ground = lambda e: 1.7 / np.sin(np.radians(-e))
+    step, el, _ = spherical_scan(rings, AZIMUTHS, lambda e, a: ground(e) if ground(e) < 30.0 else 2.7 / np.sin(np.radians(-e)))
+    last = max(e for e in rings if ground(e) < 30.0)
+    np.testing.assert_array_equal(depth_edges(step), np.flatnonzero(np.isclose(el, last)))
+
+
+def test_depth_edges_across_rings_farther_apart_than_the_gap():
+    """The box top of the test above with rings ``MAX_RING_GAP_DEG`` + 0.2 deg apart: only its sides; 0.2 deg less
+    apart: its top row too."""
+    for gap, with_top in ((MAX_RING_GAP_DEG + 0.2, False), (MAX_RING_GAP_DEG - 0.2, True)):
+        rings = gap * np.arange(-3.0, 3.5) + 0.07  # off the ring bins' borders
+        points, el, az = spherical_scan(rings, AZIMUTHS, lambda e, a: 8.0 if 10 - 1e-9 <= a <= 14 + 1e-9 and e <= 0.1 else 20.0)
+        expected = ((np.isclose(az, 10.0) | np.isclose(az, 14.0)) & (el <= 0.1)) | (with_top & np.isclose(el, 0.07) & (az > 10 - 1e-9) & (az < 14 + 1e-9))
+        np.testing.assert_array_equal(depth_edges(points), np.flatnonzero(expected))
+
+
+def test_depth_edges_across_rings_only_where_the_beams_are_apart():
+    """The box top again, each point's elevation moved by up to +-0.3 deg (KITTI's HDL-64E: a laser off the scanner's
+    origin sees near and far points at elevations apart by more than its neighbours'): no valley separates the beams,
+    so no edge across them; moved by up to +-0.03 deg, the top is found again, and the sides."""
+    rings = np.arange(-4.0, 4.5) + 0.07
+    for spread, with_top in ((0.3, False), (0.03, True)):
+        jitter = np.random.default_rng(0).uniform(-spread, spread, len(rings) * len(AZIMUTHS))
+        ring, az = np.repeat(rings, len(AZIMUTHS)), np.tile(AZIMUTHS, len(rings))
+        r = np.where((az > 10 - 1e-9) & (az < 14 + 1e-9) & (ring <= 0.5), 8.0, 20.0)
+        e, a = np.radians(ring + jitter), np.radians(az)
+        points = np.c_[r * np.cos(e) * np.cos(a), r * np.cos(e) * np.sin(a), r * np.sin(e)]
+        top = np.isclose(ring, 0.07) & (az > 10.1) & (az < 13.9)  # the top row, its corners (also sides) left out
+        sides = np.isin(np.round(az, 6), [10.0, 14.0]) & (ring <= 0.5)
+        found = np.zeros(len(points), bool)
+        found[depth_edges(points)] = True
+        assert top.sum() == 19 and sides.sum() == 10
+        assert found[top].sum() == (19 if with_top else 0), (spread, found[top].sum())
+        assert found[sides].all() or not with_top  # (spread over 0.3 deg, a ring's points fall in several ring bins)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -178,9 +243,9 @@ def search_from(data, moved, columns):
 
 @pytest.mark.parametrize("moved", [0.4, -0.3])
 def test_view_search_places_the_along_track_lever_arm_the_street_view_sees(synth, moved):
-    """On the synthetic street the depth edges are vertical silhouettes: the view sees the along-track lever arm
-    (column 5, reference frame z). Moved 40 cm ahead or 30 cm back, the search places it within 6 cm (measured 4.4 and
-    5 cm: the mean's minimum, not the median's) with a sigma of at least its finest step."""
+    """On the synthetic street the view sees the along-track lever arm (column 5, reference frame z) through the
+    parallax of its depth edges. Moved 40 cm ahead or 30 cm back, the search places it within 6 cm (measured 3.1 and
+    3.7 cm: the mean's minimum, not the median's) with a sigma of at least its finest step."""
     found, error = search_from(dict(synth, gt=synth["ext"]), np.r_[0, 0, 0, 0, 0, moved, 0], [5])
     assert found.accepted == [5] and found.notes == []
     assert abs(error[5]) < 0.06, error
@@ -207,14 +272,29 @@ def test_the_stage_report_keeps_what_the_view_placed(synth):
 
 
 def test_view_search_refuses_what_the_street_view_does_not_see(synth):
-    """The same street's view does not tell the vertical lever arm nor the roll apart (their median edge distance
-    varies by under 10 % over 2 deg / 20 cm): moved 30 cm and 2.9 deg, both are refused with the median's profile in
-    the note, and the increment on them is 0; the along-track component moved with them is refused too: its minimum
-    moves with them across the grid (the coupling rule), so it cannot be placed while they are unknown."""
+    """The same street's view does not tell the roll apart (its median edge distance falls on across the profile), so
+    moved 2.9 deg with the vertical and along-track lever arms 30 cm off, nothing is placed: the roll is refused with
+    the median's profile in the note, and the lever arm's components then move with it across the grid (the coupling
+    rule); the increment is 0."""
     found, error = search_from(dict(synth, gt=synth["ext"]), np.r_[0.05, 0, 0, 0, 0.3, 0.3, 0], [0, 4, 5])
     assert found.accepted == [] and not found.increment.any()
-    assert sum("does not confirm" in n for n in found.notes) == 2 and "column 0" in found.notes[0] and "column 4" in found.notes[1]
-    assert any("column 5: its minimum moves" in n for n in found.notes), found.notes
+    assert "column 0: the median edge distance does not confirm" in found.notes[0], found.notes
+    for c in (4, 5):
+        assert any(n.startswith(f"column {c}: its minimum moves") for n in found.notes), found.notes
+
+
+@pytest.mark.parametrize("moved", [0.3, -0.3])
+def test_view_search_places_the_vertical_lever_arm_by_the_edges_across_beams(synth, moved):
+    """The roofs of the street's cars and buildings against what lies behind them are depth edges across the 32 beams
+    (1.13 deg apart): moved 30 cm up or down, the vertical lever arm (column 4, reference frame y) is placed within 11 cm
+    (measured 8.8 and 10.0 cm: a roof's near point lies below its edge, by up to a beam spacing), and the sigma covers
+    that: at least half a beam spacing at the rows' median range (``neighbour_spacing``; 10.4 and 10.3 cm)."""
+    found, error = search_from(dict(synth, gt=synth["ext"]), np.r_[0, 0, 0, 0, moved, 0, 0], [4])
+    assert found.accepted == [4] and found.notes == []
+    ranges = np.linalg.norm(synth["scans"].points[synth["view"].at(synth["traj"], synth["ext"].updated(found.increment), synth["scans"], synth["pairs"]).rows.point], axis=1)
+    assert synth["view"].spacing == pytest.approx(np.deg2rad(35.0 / 31), rel=1e-3)
+    assert abs(error[4]) < 0.11 and abs(error[4]) <= found.sigma[4], (error[4], found.sigma[4])
+    assert found.sigma[4] >= 0.9 * synth["view"].spacing / 2 * np.median(ranges)
 
 
 def test_no_shared_view_when_the_reference_sensor_is_a_lidar(synth, tmp_path):

@@ -41,5 +41,5 @@ found = search_held(traj, ext, scans, shared, pairs, columns, config.hold_split_
 after = ext.updated(found.increment)
 show = lambda e: (lambda d: f"cm {np.round(np.array(d[:3]) * 100, 1)} deg {np.round(np.rad2deg(d[3:6]), 2)}")(
     parameter_difference(e.matrix(), e.time_offset, gt.matrix(), gt.time_offset))
-print(f"{len(shared.rows.point)} rows; placed {found.accepted} of {columns}; notes {found.notes}")
+print(f"{len(shared.rows.point)} rows; placed {found.accepted} of {columns} (sigma {[round(float(found.sigma[c]), 4) for c in found.accepted]}); notes {found.notes}")
 print(f"before {show(ext)} -> after {show(after)}; {found.evaluations} evaluations, {time.time() - began:.0f} s")
