@@ -2,8 +2,8 @@
 
 Motion alone leaves a LiDAR's lever arm and its roll undetermined on a straight drive (``observability``), but the
 reference camera's poses are known, and in a single frame a LiDAR point at a depth discontinuity (the near side of a
-jump in range between neighbours of one ring: a pole, a car, a building corner) projects onto the occluding contour
-the camera sees as an image edge. A lever-arm error of 10 cm moves those projections by ``f * 0.1 / depth`` pixels
+jump in range between neighbours of one ring: a pole, a car, a building corner; or of adjacent beams: a roof)
+projects onto the occluding contour the camera sees as an image edge. A lever-arm error of 10 cm moves those projections by ``f * 0.1 / depth`` pixels
 (3.6 px at 10 m for KITTI at half size), whatever the drive does. Cost: the distance (pixels) from a LiDAR edge
 point's projection, in the reference frame nearest its scan in time, to the nearest Canny edge of that image (a
 distance transform, capped at ``MAX_DISTANCE``: chamfer matching, as edge-based LiDAR-camera calibration does,
