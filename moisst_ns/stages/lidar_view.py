@@ -142,7 +142,12 @@ def depth_edges(points: Float[np.ndarray, "num 3"]) -> Int[np.ndarray, "edges"]:
     Returns:
         Indices into ``points`` (sorted).
     """
-    rng, azimuth, elevation, (a, b), members, centre = _neighbours(points)
+    return _depth_edges(points, _neighbours(points))
+
+
+def _depth_edges(points: Float[np.ndarray, "num 3"], hood) -> Int[np.ndarray, "edges"]:
+    """``depth_edges`` with the scan's ``_neighbours`` given."""
+    rng, azimuth, _, (a, b), members, centre = hood
     jump = lambda near: JUMP[0] + JUMP[1] * rng[near]
     near = [a[rng[b] - rng[a] > jump(a)], b[rng[a] - rng[b] > jump(b)]]  # along a ring
     above, below = np.full(len(points), -1), np.full(len(points), -1)  # across beams: the nearest azimuth up and down
@@ -175,7 +180,12 @@ def neighbour_spacing(points: Float[np.ndarray, "num 3"]) -> float:
     Args:
         points: one scan, in the LiDAR frame (z up, a spinning scanner), metres.
     """
-    _, azimuth, _, (a, b), _, centre = _neighbours(points)
+    return _neighbour_spacing(_neighbours(points))
+
+
+def _neighbour_spacing(hood) -> float:
+    """``neighbour_spacing`` of the scan whose ``_neighbours`` are given."""
+    _, azimuth, _, (a, b), _, centre = hood
     steps = [np.median(np.abs(azimuth[b] - azimuth[a])) if len(a) else 0.0]
     beams = np.diff(centre)
     steps.append(np.median(beams[beams <= MAX_RING_GAP_DEG]) if (beams <= MAX_RING_GAP_DEG).any() else 0.0)
@@ -309,7 +319,8 @@ class SharedView:
         if view is None:
             return None
         parts = [scans.points[scans.scan(k)] for k in range(len(scans.stamps))]
-        return cls(view, [depth_edges(p) for p in parts], float(np.median([neighbour_spacing(p) for p in parts])))
+        hoods = [_neighbours(p) for p in parts]  # once per scan: its edges and its spacing
+        return cls(view, [_depth_edges(p, h) for p, h in zip(parts, hoods)], float(np.median([_neighbour_spacing(h) for h in hoods])))
 
     def bias(self, scans) -> Float[np.ndarray, "7"]:
         """Per Jacobian column, how far the depth edges' placement may be biased (m, rad; 0 for the time offset): half
