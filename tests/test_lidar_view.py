@@ -24,7 +24,8 @@ from moisst_ns.stages.lidar_first import (
 )
 from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory
 from moisst_ns.stages.lidar_map import CameraStageError
-from moisst_ns.stages.lidar_view import GRID, JUMP, MAX_DISTANCE, MAX_RING_GAP_DEG, NEIGHBOUR_DEG, REFINEMENTS, depth_edges, edge_distance, search_held, view_residuals
+from moisst_ns.stages.lidar_edges import JUMP, MAX_RING_GAP_DEG, NEIGHBOUR_DEG, depth_edges
+from moisst_ns.stages.lidar_view import GRID, MAX_DISTANCE, REFINEMENTS, edge_distance, search_held, view_residuals
 from moisst_ns.stages.observability import JACOBIAN_ORDER, TEST_STEPS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti-raw-2011_09_26_drive_0048"
@@ -288,7 +289,7 @@ def test_view_search_places_the_vertical_lever_arm_by_the_edges_across_beams(syn
     """The roofs of the street's cars and buildings against what lies behind them are depth edges across the 32 beams
     (1.13 deg apart): moved 30 cm up or down, the vertical lever arm (column 4, reference frame y) is placed within 11 cm
     (measured 8.8 and 10.0 cm: a roof's near point lies below its edge, by up to a beam spacing), and the sigma covers
-    that: at least half a beam spacing at the rows' median range (``neighbour_spacing``; 10.4 and 10.3 cm)."""
+    that: at least half a beam spacing at the rows' median range (``lidar_edges.scan_edges``; 10.4 and 10.3 cm)."""
     found, error = search_from(dict(synth, gt=synth["ext"]), np.r_[0, 0, 0, 0, moved, 0, 0], [4])
     assert found.accepted == [4] and found.notes == []
     ranges = np.linalg.norm(synth["scans"].points[synth["view"].at(synth["traj"], synth["ext"].updated(found.increment), synth["scans"], synth["pairs"]).rows.point], axis=1)
