@@ -36,3 +36,20 @@ def planar_distance_view(view):
     planes = np.stack([a[f] * x + b[f] * y + 5.0 for f in range(frames)])
     gradient = np.stack([np.stack([np.full_like(x, a[f]), np.full_like(x, b[f])]) for f in range(frames)])
     return replace(view, distance=ImageStack(planes, gradient, stack.model))
+
+
+def render_still(scene, intr, world_T_cam, supersample=1):
+    """A synthetic camera image at one fixed pose: (uint8 RGB (h, w, 3), fraction of each pixel's rays that hit)."""
+    from moisst_ns.datasets.synth_effects import to_uint8
+    from moisst_ns.datasets.synth_render import render_frame
+
+    rgb, hit = render_frame(scene, intr, lambda _: world_T_cam[None], 0.0, supersample=supersample)
+    return to_uint8(rgb), hit
+
+
+def scene_distance(scene, points):
+    """Unsigned distance of world points (N, 3) to the nearest surface of a synthetic ``Scene``, metres."""
+    import numpy as np
+    import open3d as o3d
+
+    return scene.raycasting.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy()

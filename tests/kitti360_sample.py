@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from moisst_ns.datasets.kitti360 import MeiCamera, _inv, _rot4, format_timestamp
+from moisst_ns.datasets.kitti360 import MeiCamera, format_timestamp
+from moisst_ns.datasets.rig_writer import inverse, rigid
 from moisst_ns.rig.format import load_lidar_scan, load_rig, load_tum
 from moisst_ns.datasets.synth import SynthConfig, build_scene, make_path, make_rig
 from moisst_ns.datasets.synth_path import rot_x, rot_y, rot_z
@@ -47,6 +48,22 @@ def fisheye_model(size: int) -> MeiCamera:
                      u0=(size - 1) / 2.0 + 0.3, v0=(size - 1) / 2.0 - 0.2, width=size, height=size)
 
 
+def mei_unproject(camera: MeiCamera, pixels: np.ndarray) -> np.ndarray:
+    """Unit ray directions (N, 3) of pixels (N, 2) (pixel centres at integers) of a MEI camera: the inverse of
+    ``MeiCamera.project``, the distortion inverted with OpenCV's iteration."""
+    import cv2
+
+    c = camera
+    uv = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
+    K = np.array([[c.gamma1, 0.0, c.u0], [0.0, c.gamma2, c.v0], [0.0, 0.0, 1.0]])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    m = cv2.undistortPointsIter(uv, K, np.array([c.k1, c.k2, c.p1, c.p2]), None, None, criteria).reshape(-1, 2)
+    r2 = (m * m).sum(axis=1)
+    factor = (c.xi + np.sqrt(1.0 + (1.0 - c.xi**2) * r2)) / (1.0 + r2)
+    d = np.stack([factor * m[:, 0], factor * m[:, 1], factor - c.xi], axis=1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
 def write_sample(root: Path, native: Path | None = None, width: int = 64, height: int = 48, frames: int = 8,
                  seed: int = 3, fisheye_size: int = 96) -> dict:
     """Write ``root`` (KITTI-360 layout) and, unless given, the native synthetic rig it comes from.
@@ -66,15 +83,15 @@ def write_sample(root: Path, native: Path | None = None, width: int = 64, height
     truth = {k: np.array(gt[v]["T_ref_sensor"]) for k, v in NAMES.items()}
     offsets = {k: gt[v]["time_offset"] for k, v in NAMES.items()}
 
-    pose_T_rect0 = _orthonormal(POSE_T_CAM0) @ _rot4(R_RECT_00.T)
+    pose_T_rect0 = _orthonormal(POSE_T_CAM0) @ rigid(R_RECT_00.T)
     cam_to_pose = {
         "image_00": _orthonormal(POSE_T_CAM0),
-        "image_01": pose_T_rect0 @ truth["image_01"] @ _rot4(R_RECT_01),
+        "image_01": pose_T_rect0 @ truth["image_01"] @ rigid(R_RECT_01),
         "image_02": pose_T_rect0 @ truth["image_02"],
         # no image_03 in this sample: the calibration files still list it, as the real ones do
-        "image_03": pose_T_rect0 @ truth["image_02"] @ _rot4(rot_z(np.pi)),
+        "image_03": pose_T_rect0 @ truth["image_02"] @ rigid(rot_z(np.pi)),
     }
-    velo_T_cam0 = _inv(truth["velodyne"]) @ _rot4(R_RECT_00)
+    velo_T_cam0 = inverse(truth["velodyne"]) @ rigid(R_RECT_00)
 
     seq = root / "data_2d_raw" / SEQUENCE
     calib = root / "calibration"
@@ -128,7 +145,7 @@ def write_sample(root: Path, native: Path | None = None, width: int = 64, height
     scene = build_scene(config, make_path(config))
     (seq / "image_02" / "data_rgb").mkdir()
     uu, vv = np.meshgrid(np.arange(mei.width, dtype=np.float64), np.arange(mei.height, dtype=np.float64))
-    dirs_cam = mei.unproject(np.stack([uu.ravel(), vv.ravel()], axis=1))
+    dirs_cam = mei_unproject(mei, np.stack([uu.ravel(), vv.ravel()], axis=1))
     for k, t in enumerate(stamps["image_02"]):
         world_T_cam = traj(torch.tensor([t], dtype=torch.float64) - traj.t0)[0].numpy() @ truth["image_02"]
         rgb, _ = scene.colour(world_T_cam[:3, 3], dirs_cam @ world_T_cam[:3, :3].T, 1.0 / mei.gamma1)
@@ -140,7 +157,7 @@ def write_sample(root: Path, native: Path | None = None, width: int = 64, height
     poses_dir.mkdir(parents=True)
     ref = traj(torch.from_numpy(stamps["image_00"]) - traj.t0).numpy()
     keep = [k for k in range(len(ref)) if k != SKIPPED_POSE]
-    (poses_dir / "poses.txt").write_text("".join(f"{k} {_row(ref[k] @ _inv(pose_T_rect0))}\n" for k in keep))
+    (poses_dir / "poses.txt").write_text("".join(f"{k} {_row(ref[k] @ inverse(pose_T_rect0))}\n" for k in keep))
     (poses_dir / "cam0_to_world.txt").write_text("".join(f"{k} {_row(ref[k], 4)}\n" for k in keep))
     return {"root": root, "native": config.out, "sequence": SEQUENCE, "truth": truth, "stamps": stamps, "fisheye": mei,
             "reference_poses": ref, "pose_frames": keep}

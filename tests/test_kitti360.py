@@ -20,8 +20,8 @@ from moisst_ns.datasets.kitti360 import (
 from moisst_ns.rig.calibration import RigCalibration, RigData
 from moisst_ns.rig.format import load_calibration, load_lidar_scan, load_rig, load_tum
 
-from helpers import tree_hash
-from kitti360_sample import NAMES, SEQUENCE, SKIPPED_POSE, write_sample
+from helpers import render_still, tree_hash
+from kitti360_sample import NAMES, SEQUENCE, SKIPPED_POSE, mei_unproject, write_sample
 
 CAMS = ("image_00", "image_01", "image_02")
 
@@ -131,7 +131,6 @@ def test_fisheye_is_rectified_onto_the_right_pinhole_view(sample, converted):
     from moisst_ns.rig.geometry import ReferenceTrajectory
     from moisst_ns.datasets.synth import SynthConfig, build_scene, make_path
     from moisst_ns.datasets.synth_path import rot_y
-    from moisst_ns.datasets.synth_render import render_camera
 
     rig = load_rig(converted)
     config = SynthConfig(out=sample["native"], width=64, height=48, frames=8, seed=3)
@@ -144,8 +143,8 @@ def test_fisheye_is_rectified_onto_the_right_pinhole_view(sample, converted):
     for f in rig.frames_of("image_02")[:3]:
         pose = traj(torch.tensor([f.timestamp], dtype=torch.float64) - traj.t0)[0].numpy() @ T
         image = np.asarray(Image.open(rig.root / f.file_path), dtype=np.float64)
-        good.append(np.abs(image - render_camera(scene, intr, pose, 2)[0]).mean())
-        bad.append(np.abs(image - render_camera(scene, intr, pose @ off, 2)[0]).mean())
+        good.append(np.abs(image - render_still(scene, intr, pose, 2)[0]).mean())
+        bad.append(np.abs(image - render_still(scene, intr, pose @ off, 2)[0]).mean())
     assert np.mean(good) < 6.0, good
     assert np.mean(good) < 0.5 * np.mean(bad), (good, bad)
 
@@ -164,7 +163,7 @@ def test_mei_projection_matches_hand_values_and_round_trips():
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     uv, ok = distorted.project(dirs)
     assert ok.all()
-    np.testing.assert_allclose(distorted.unproject(uv), dirs, atol=1e-8)
+    np.testing.assert_allclose(mei_unproject(distorted, uv), dirs, atol=1e-8)
 
 
 def test_paper_perturbation_of_the_priors(sample, tmp_path):

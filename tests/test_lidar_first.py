@@ -16,22 +16,27 @@ import torch
 from moisst_ns.cli.lidar_calibrate import LidarCalibrateConfig, run_lidar_calibration
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import load_calibration, load_lidar_scan, load_rig
-from moisst_ns.rig.geometry import calibrated_extrinsic, interpolate_trajectory
+from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, interpolate_trajectory
 from moisst_ns.stages.lidar_first import Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, calibrate_lidars, consistency_residuals
-from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points, placement_jacobian
+from moisst_ns.stages.lidar_geometry import Extrinsic, place_points, placement_jacobian
 from moisst_ns.stages.observability import PARAMETERS, analyse_observability
 from moisst_ns.datasets.synth import SynthConfig, build_scene, make_rig
-from helpers import tree_hash
+from helpers import scene_distance, tree_hash
 
 
 def rotz(deg: float) -> np.ndarray:
     return roma.rotvec_to_rotmat(torch.tensor([0.0, 0.0, np.deg2rad(deg)], dtype=torch.float64)).numpy()
 
 
-def random_trajectory(rng: np.random.Generator, num: int = 12) -> Trajectory:
+def numpy_trajectory(times, rotations, translations) -> ReferenceTrajectory:
+    """A ``ReferenceTrajectory`` of numpy samples (float64)."""
+    return ReferenceTrajectory(*(torch.from_numpy(np.asarray(a, dtype=np.float64)) for a in (times, rotations, translations)))
+
+
+def random_trajectory(rng: np.random.Generator, num: int = 12) -> ReferenceTrajectory:
     rotvecs = np.cumsum(rng.normal(0, 0.05, (num, 3)), axis=0)
     rot = roma.rotvec_to_rotmat(torch.from_numpy(rotvecs)).numpy()
-    return Trajectory(np.cumsum(rng.uniform(0.05, 0.15, num)), rot, np.cumsum(rng.normal(0, 1.0, (num, 3)), axis=0))
+    return numpy_trajectory(np.cumsum(rng.uniform(0.05, 0.15, num)), rot, np.cumsum(rng.normal(0, 1.0, (num, 3)), axis=0))
 
 
 def test_placement_is_paper_eq_1_2():
@@ -40,9 +45,8 @@ def test_placement_is_paper_eq_1_2():
     traj = random_trajectory(rng)
     ext = Extrinsic(rotz(30.0), np.array([0.5, -0.2, 1.0]), 0.04)
     points = rng.normal(0, 10, (200, 3))
-    times = rng.uniform(traj.times[0] - 0.3, traj.times[-1] + 0.3, 200)
-    world_T_ref = interpolate_trajectory(torch.from_numpy(traj.times), torch.from_numpy(traj.rotations),
-                                         torch.from_numpy(traj.translations), torch.from_numpy(times + ext.time_offset))
+    times = rng.uniform(float(traj.times[0]) - 0.3, float(traj.times[-1]) + 0.3, 200)
+    world_T_ref = interpolate_trajectory(traj.times, traj.rotations, traj.translations, torch.from_numpy(times + ext.time_offset))
     expected = (world_T_ref @ torch.from_numpy(ext.matrix()))[:, :3, :3] @ torch.from_numpy(points)[..., None]
     expected = expected[..., 0] + (world_T_ref @ torch.from_numpy(ext.matrix()))[:, :3, 3]
     assert np.abs(place_points(traj, ext, points, times) - expected.numpy()).max() < 1e-9
@@ -56,14 +60,13 @@ def test_jacobian_matches_autograd_through_eq_12():
     ext = Extrinsic(rotz(-20.0), np.array([1.0, 0.3, -0.5]), -0.03)
     points, normals = rng.normal(0, 8, (50, 3)), rng.normal(0, 1, (50, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    times = rng.uniform(traj.times[1], traj.times[-2], 50)
+    times = rng.uniform(float(traj.times[1]), float(traj.times[-2]), 50)
     increment = np.array([0.3, -0.2, 0.25, 0.1, -0.2, 0.05, 0.012])
     value, jac = placement_jacobian(traj, ext, increment, points, times, normals)
 
     inc = torch.tensor(increment, requires_grad=True)
     pose = calibrated_extrinsic(torch.from_numpy(ext.matrix()), inc[:3], inc[3:6])
-    world_T_ref = interpolate_trajectory(torch.from_numpy(traj.times), torch.from_numpy(traj.rotations),
-                                         torch.from_numpy(traj.translations), torch.from_numpy(times) + ext.time_offset + inc[6])
+    world_T_ref = interpolate_trajectory(traj.times, traj.rotations, traj.translations, torch.from_numpy(times) + ext.time_offset + inc[6])
     world = (world_T_ref @ pose)[:, :3, :3] @ torch.from_numpy(points)[..., None]
     world = world[..., 0] + (world_T_ref @ pose)[:, :3, 3]
     projected = (world * torch.from_numpy(normals)).sum(-1)
@@ -86,7 +89,7 @@ def two_scan_problem(lever_error: np.ndarray):
     extrinsic is known, its estimate off by ``lever_error``. Correspondences: every world point with itself."""
     rng = np.random.default_rng(2)
     world, normals = corner_world(rng)
-    traj = Trajectory(np.array([0.0, 0.5, 1.0]), np.stack([rotz(0.0), rotz(30.0), rotz(60.0)]),
+    traj = numpy_trajectory(np.array([0.0, 0.5, 1.0]), np.stack([rotz(0.0), rotz(30.0), rotz(60.0)]),
                       np.array([[0.0, 0.0, 0.0], [2.0, 0.5, 0.0], [4.0, 1.5, 0.0]]))
     truth = Extrinsic(rotz(90.0), np.array([0.5, 0.0, 1.8]), 0.0)
     poses = [traj.pose_and_rates(np.array([t]))[:2] for t in (0.0, 0.5)]
@@ -115,7 +118,7 @@ def test_two_scans_of_a_corner_closed_form():
     assert np.abs(vertical).max() < 1e-9
 
 
-def observability_of(traj: Trajectory, times: np.ndarray, ext: Extrinsic, seed: int = 3):
+def observability_of(traj: ReferenceTrajectory, times: np.ndarray, ext: Extrinsic, seed: int = 3):
     """Observability on a box-shaped world of many plane orientations, scans at ``times``, every pair within 2 s."""
     rng = np.random.default_rng(seed)
     jacs = []
@@ -146,7 +149,7 @@ def drive(heading, speed, pitch_roll_deg=0.0, duration=6.0):
     tilt = np.deg2rad(pitch_roll_deg) * np.sin(2 * np.pi * t / 2.0)
     rotvecs = np.c_[tilt, np.deg2rad(pitch_roll_deg) * np.cos(2 * np.pi * t / 3.0), psi]
     rot = roma.rotvec_to_rotmat(torch.from_numpy(rotvecs)).numpy()
-    return Trajectory(t, rot, np.c_[xy, np.zeros(len(t))])
+    return numpy_trajectory(t, rot, np.c_[xy, np.zeros(len(t))])
 
 
 EXT = Extrinsic(rotz(10.0), np.array([1.2, 0.1, 1.9]), 0.02)
@@ -189,13 +192,13 @@ def test_deskew_of_a_raw_sweep(tiny_rigs, tmp_path):
     rig = load_rig(tiny_rigs["raw"])
     truth = load_calibration(rig.root / "ground_truth.json")
     scene = build_scene(SynthConfig(out=tmp_path, seed=3, **TINY))
-    traj = Trajectory.from_rig(rig)
+    traj = ReferenceTrajectory.of(rig)
     ext = Extrinsic(truth.T_ref_sensor["lidar"][:3, :3], truth.T_ref_sensor["lidar"][:3, 3], truth.time_offset["lidar"])
     frame = rig.frames_of("lidar")[10]
     points, times, _ = load_lidar_scan(rig.root / frame.file_path)
     stamp = frame.timestamp - rig.trajectory_stamps[0]
-    deskewed = scene.distance(place_points(traj, ext, points.astype(np.float64), stamp + times))
-    skewed = scene.distance(place_points(traj, ext, points.astype(np.float64), np.full(len(points), stamp)))
+    deskewed = scene_distance(scene, place_points(traj, ext, points.astype(np.float64), stamp + times))
+    skewed = scene_distance(scene, place_points(traj, ext, points.astype(np.float64), np.full(len(points), stamp)))
     assert np.percentile(deskewed, 99) < 2e-3
     assert np.percentile(skewed, 90) > 0.1  # measured 0.21 m (ground points slide along the ground and stay on it)
 
@@ -206,8 +209,8 @@ def test_deskew_of_a_raw_sweep(tiny_rigs, tmp_path):
     cpoints, ctimes, _ = load_lidar_scan(crig.root / cframe.file_path)
     assert ctimes is None
     cscene = build_scene(SynthConfig(out=tmp_path, seed=4, layout="plaza", **TINY))
-    placed = place_points(Trajectory.from_rig(crig), cext, cpoints.astype(np.float64), np.full(len(cpoints), cframe.timestamp - crig.trajectory_stamps[0]))
-    assert np.percentile(cscene.distance(placed), 99) < 2e-3
+    placed = place_points(ReferenceTrajectory.of(crig), cext, cpoints.astype(np.float64), np.full(len(cpoints), cframe.timestamp - crig.trajectory_stamps[0]))
+    assert np.percentile(scene_distance(cscene, placed), 99) < 2e-3
 
 
 @pytest.mark.parametrize("kind", ["raw", "compensated"])
@@ -365,7 +368,7 @@ def calibration_report_errors_of(result, truth):
 def test_split_half_spread_exact_values():
     """Half the difference of the two halves' fits, each half fitted on the pairs wholly inside it; NaN (not measured)
     when a half has no pair or cannot be fitted."""
-    from moisst_ns.stages.lidar_checks import split_half_spread
+    from moisst_ns.stages.lidar_first import split_half_spread
 
     pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [1, 4]])
     seen = []

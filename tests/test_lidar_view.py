@@ -16,13 +16,14 @@ from scipy.spatial.transform import Rotation
 
 from moisst_ns.datasets.synth import SynthConfig, make_rig
 from moisst_ns.rig.format import load_calibration, load_rig
+from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.stages.lidar_first import (
     LidarFirstConfig,
     SharedView,
     load_scans,
     scan_pairs,
 )
-from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory
+from moisst_ns.stages.lidar_geometry import Extrinsic
 from moisst_ns.stages.lidar_map import CameraStageError
 from moisst_ns.stages.lidar_edges import JUMP, MAX_RING_GAP_DEG, NEIGHBOUR_DEG, depth_edges
 from moisst_ns.stages.lidar_view import GRID, MAX_DISTANCE, REFINEMENTS, edge_distance, search_held, view_residuals
@@ -218,7 +219,7 @@ def synth(tmp_path_factory):
     rig = load_rig(root)
     truth = load_calibration(root / "ground_truth.json")
     ext = extrinsic_of(truth.T_ref_sensor["lidar"], truth.time_offset["lidar"])
-    traj = Trajectory.from_rig(rig)
+    traj = ReferenceTrajectory.of(rig)
     config = LidarFirstConfig()
     scans = load_scans(rig, "lidar", traj, config, log=lambda _: None)
     pairs, _ = scan_pairs(traj, scans, ext.time_offset, config)
@@ -307,7 +308,7 @@ def test_no_shared_view_when_the_reference_sensor_is_a_lidar(synth, tmp_path):
     data["sensors"]["lidar"].update(T_ref_sensor=np.eye(4).tolist(), time_offset=0.0)
     (root / "rig.json").write_text(json.dumps(data))
     rig = load_rig(root)
-    traj = Trajectory.from_rig(rig)
+    traj = ReferenceTrajectory.of(rig)
     scans = load_scans(rig, "lidar", traj, LidarFirstConfig(), log=lambda _: None)
     assert SharedView.of(rig, traj, scans) is None
 
@@ -321,7 +322,7 @@ def test_shared_view_refuses_a_missing_reference_image(synth, tmp_path):
     missing.unlink()
     scans = synth["scans"]
     with pytest.raises(CameraStageError, match="^" + re.escape(f"{missing}: file_path: missing")) as err:
-        SharedView.of(rig, Trajectory.from_rig(rig), scans)
+        SharedView.of(rig, ReferenceTrajectory.of(rig), scans)
     assert "\n" not in str(err.value)
 
 
@@ -338,7 +339,7 @@ def kitti_view(tmp_path_factory, last_frame):
                                  downscale=2, points_per_scan=60000, perturb="paper"))
     rig = load_rig(out)
     truth = load_calibration(out / "ground_truth.json")
-    traj = Trajectory.from_rig(rig)
+    traj = ReferenceTrajectory.of(rig)
     config = LidarFirstConfig()
     gt = extrinsic_of(truth.T_ref_sensor["velodyne"], truth.time_offset["velodyne"])
     prior = extrinsic_of(rig.sensors["velodyne"].T_ref_sensor, rig.sensors["velodyne"].time_offset)

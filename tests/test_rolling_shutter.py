@@ -111,13 +111,13 @@ def test_shared_view_projects_lidar_edges_from_the_rows_pose(rig_folder):
     """The LiDAR stage's shared view: with the reference camera's readout, each LiDAR edge point is seen from the pose
     at its row's time: its edge distance differs from the global shutter's (by tenths of a pixel)."""
     from moisst_ns.stages.lidar_first import LidarFirstConfig, SharedView, load_scans, scan_pairs
-    from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory
+    from moisst_ns.stages.lidar_geometry import Extrinsic
     from moisst_ns.stages.lidar_view import view_residuals
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     T = np.asarray(truth.T_ref_sensor["lidar"])
     ext = Extrinsic(T[:3, :3].copy(), T[:3, 3].copy(), float(truth.time_offset["lidar"]))
-    traj, config = Trajectory.from_rig(rig), LidarFirstConfig()
+    traj, config = ReferenceTrajectory.of(rig), LidarFirstConfig()
     scans = load_scans(rig, "lidar", traj, config, log=lambda _: None)
     pairs, _ = scan_pairs(traj, scans, ext.time_offset, config)
     shared = SharedView.of(rig, traj, scans)

@@ -24,9 +24,8 @@ from moisst_ns.datasets.synth import (
     make_truth,
     reference_trajectory_samples,
 )
-from moisst_ns.datasets.synth_render import render_camera
 from moisst_ns.datasets.synth_rig import perturbation_rotation
-from helpers import file_hashes
+from helpers import file_hashes, render_still, scene_distance
 
 TINY = dict(width=64, height=48, frames=8, lidar_azimuth_steps=512, lidar_max_points=6000)
 
@@ -189,7 +188,7 @@ def test_lidar_points_lie_on_scene_geometry(rigs):
     def distances(delta):
         poses = world_T(traj, frame.timestamp + times, gt.T_ref_sensor["lidar"], delta)
         world = np.einsum("nij,nj->ni", poses[:, :3, :3], points.astype(np.float64)) + poses[:, :3, 3]
-        return scene.distance(world)
+        return scene_distance(scene, world)
 
     true = distances(gt.time_offset["lidar"])
     assert np.max(true) < 2e-3, np.max(true)
@@ -197,7 +196,7 @@ def test_lidar_points_lie_on_scene_geometry(rigs):
     assert np.mean(distances(gt.time_offset["lidar"] + 0.03) > 0.02) > 0.2
     poses = world_T(traj, np.full(len(times), frame.timestamp), gt.T_ref_sensor["lidar"], gt.time_offset["lidar"])
     world = np.einsum("nij,nj->ni", poses[:, :3, :3], points.astype(np.float64)) + poses[:, :3, 3]
-    assert np.mean(scene.distance(world) > 0.02) > 0.2
+    assert np.mean(scene_distance(scene, world) > 0.02) > 0.2
 
 
 def test_camera_frames_follow_the_model(rigs):
@@ -211,10 +210,10 @@ def test_camera_frames_follow_the_model(rigs):
         frame = rig.frames_of(name)[5]
         image = np.asarray(Image.open(out / frame.file_path)).astype(np.float64)
         pose = world_T(traj, [frame.timestamp], gt.T_ref_sensor[name], gt.time_offset[name])[0]
-        again, _ = render_camera(scene, intr, pose)
+        again, _ = render_still(scene, intr, pose)
         assert np.abs(again - image).mean() < 0.5
         wrong = world_T(traj, [frame.timestamp], gt.T_ref_sensor[name], gt.time_offset[name] + 0.05)[0]
-        assert np.abs(render_camera(scene, intr, wrong)[0] - image).mean() > 3.0
+        assert np.abs(render_still(scene, intr, wrong)[0] - image).mean() > 3.0
 
 
 def test_images_are_textured_not_sky(rigs):
@@ -233,7 +232,7 @@ def test_images_are_textured_not_sky(rigs):
     for name in ("cam_front", "cam_front_right", "cam_left"):
         for frame in (rig.frames_of(name)[0], rig.frames_of(name)[-1]):
             pose = world_T(traj, [frame.timestamp], gt.T_ref_sensor[name], gt.time_offset[name])[0]
-            _, hit = render_camera(scene, intrinsics(cfg), pose)
+            _, hit = render_still(scene, intrinsics(cfg), pose)
             assert hit.mean() > 0.6, (name, frame.timestamp, hit.mean())
 
 

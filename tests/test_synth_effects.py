@@ -26,7 +26,6 @@ from moisst_ns.datasets.synth import (
     make_path,
     make_rig,
 )
-from moisst_ns.datasets.synth_render import render_camera
 from moisst_ns.datasets.synth_effects import (
     REALISTIC,
     Effects,
@@ -47,7 +46,7 @@ from moisst_ns.datasets.synth_render import render_frame
 from moisst_ns.datasets.synth_truth import config_of_rig
 from moisst_ns.rig.format import RigFormatError, load_calibration, load_lidar_scan, load_rig, rig_to_json
 from moisst_ns.rig.geometry import ReferenceTrajectory, sensor_pose
-from helpers import file_hashes
+from helpers import file_hashes, scene_distance
 
 TINY = dict(width=64, height=48, frames=5, lidar_azimuth_steps=512, lidar_max_points=6000)
 CAMERAS = ("cam_front", "cam_front_right", "cam_left")
@@ -102,7 +101,7 @@ def image(out: Path, rel: str) -> np.ndarray:
 
 def test_switches_off_reproduce_the_original_path(rigs, scene):
     """Explicit zeros are the default (same files, rig.json included); the effects' renderer, with nothing on, is
-    ``render_camera``'s arithmetic to the bit."""
+    the plain pinhole render (the arithmetic the generator always used) to the bit."""
     assert file_hashes(rigs["plain"][0]) == file_hashes(rigs["zeros"][0])
     for name in ("plain", "zeros"):
         fx = resolve_effects(rigs[name][1])
@@ -112,8 +111,20 @@ def test_switches_off_reproduce_the_original_path(rigs, scene):
     pose = world_T_at([1000.25])[0]
     for ss in (1, 2):
         rgb, hit = render_frame(scene, intrinsics(cfg), lambda s: np.repeat(pose[None], len(s), axis=0), 1000.25, supersample=ss)
-        ref_rgb, ref_hit = render_camera(scene, intrinsics(cfg), pose, ss)
+        ref_rgb, ref_hit = pinhole_render(scene, intrinsics(cfg), pose, ss)
         assert np.array_equal(to_uint8(rgb), ref_rgb) and np.array_equal(hit, ref_hit)
+
+
+def pinhole_render(scene, intr, world_T_cam, ss):
+    """The generator's original renderer (before the effects existed), kept as the reference of the test above."""
+    w, h = int(intr["w"]), int(intr["h"])
+    uu, vv = np.meshgrid((np.arange(w * ss) + 0.5) / ss, (np.arange(h * ss) + 0.5) / ss)
+    dirs = np.stack([(uu - intr["cx"]) / intr["fl_x"], (vv - intr["cy"]) / intr["fl_y"], np.ones_like(uu)], axis=-1)
+    dirs = dirs.reshape(-1, 3) @ world_T_cam[:3, :3].T
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    rgb, hit = scene.colour(world_T_cam[:3, 3], dirs, 1.0 / (float(intr["fl_x"]) * ss))
+    rgb = rgb.reshape(h, ss, w, ss, 3).mean(axis=(1, 3))
+    return (np.clip(rgb, 0, 1) * 255.0 + 0.5).astype(np.uint8), hit.reshape(h, ss, w, ss).mean(axis=(1, 3))
 
 
 def test_realistic_turns_everything_on_but_the_rolling_shutter_and_explicit_switches_win(tmp_path):
@@ -373,7 +384,7 @@ def test_movers_in_lidar_scans_and_images(rigs, scene):
         points, times, _ = load_lidar_scan(out / frame.file_path)
         poses = world_T_at(frame.timestamp + times)
         world = np.einsum("nij,nj->ni", poses[:, :3, :3], points.astype(np.float64)) + poses[:, :3, 3]
-        moving = scene.distance(world) > 0.05  # not on the static scene
+        moving = scene_distance(scene, world) > 0.05  # not on the static scene
         path_times = frame.timestamp + times[moving] + to_path_time
         centres, headings = movers.poses(path_times)
         dist = np.stack([_box_distance(world[moving], centres[:, m], headings[:, m], movers.size[m]) for m in range(8)], axis=1)

@@ -1,18 +1,7 @@
-"""``moisst-bench``: the MOISST paper's evaluation protocol (Tables I-VII) on synthetic rigs with exact ground
-truth, side by side with the baselines a user would otherwise try, plus speed and cost.
-
-A scenario file (``moisst_ns/scenarios/bench-quick.toml``, ``bench-full.toml``, shipped as package data and linked
-from ``configs/``) lists cases: a prior perturbation
-(translation per axis, rotation about every axis, time offset), what is optimised (spatial, temporal, both),
-which losses are off, and the table cells the case fills. Every case runs ``moisst-calibrate`` (in-process) on
-``moisst-synth`` rigs for one or all (seed, layout) pairs. A cell is the mean ± std over seeds and over the last
-N logged estimates (the paper averages its last epochs). Baselines: the priors alone, and nerfacto's per-frame
-pose optimiser (SO3xR3, same field) as per-frame pose errors (Table VI style). Speed: seconds/step of each MOISST
-preset and of plain nerfacto with the same field and camera rays (the calibration overhead ratio), the wall time
-until the cameras reach the target accuracy, and the peak RSS.
-
-Writes ``OUT/bench.json``, ``OUT/benchmarks.md``, ``OUT/error_vs_time.png`` and, with ``--docs``, copies the two
-last into the repository's ``docs/``.
+"""``moisst-bench``: the MOISST paper's evaluation protocol (Tables I-VII) on ``moisst-synth`` rigs with exact ground
+truth, beside the baselines (priors alone, nerfacto's per-frame pose optimiser), plus speed and cost. Cases come from
+a scenario file (``moisst_ns/scenarios/bench-*.toml``); the protocol and the outputs (``OUT/bench.json``,
+``OUT/benchmarks.md``, ``OUT/bench_error_vs_time.png``; ``--docs`` copies the two last): ``docs/benchmarks.md``.
 """
 
 from __future__ import annotations
@@ -32,7 +21,8 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from moisst_ns.bench.speed import keep_speed_block, with_speed_table
-from moisst_ns.bench.scenarios import ERR_KEYS, LOSS_SWITCHES, _seeds, load_scenarios, packaged_scenarios
+from moisst_ns.bench.scenarios import LOSS_SWITCHES, _seeds, load_scenarios, packaged_scenarios
+from moisst_ns.runs import ERROR_KEYS
 from moisst_ns.bench.tables import markdown, merge_frame_errors, plot_error_vs_time, pooled, stage_errors, time_to_target
 
 REPO = Path(__file__).resolve().parents[2]
@@ -48,7 +38,7 @@ class BenchConfig:
     scenarios: Optional[Path] = None
     """Another scenario file (overrides --quick/--full)."""
     out: Path = Path("outputs/bench")
-    """Output folder: rigs/, runs/, bench.json, benchmarks.md, error_vs_time.png."""
+    """Output folder: rigs/, runs/, bench.json, benchmarks.md, bench_error_vs_time.png."""
     docs: bool = False
     """Also copy benchmarks.md and the plot into the repository's docs/ (docs/benchmarks.md)."""
     threads: Optional[int] = None
@@ -160,7 +150,7 @@ def nerfacto_case(rig: Path, out: Path, raw: dict, steps: int, pose_optimizer: s
     from moisst_ns.rig.calibration import RigData, frame_pose_errors, frame_poses
     from moisst_ns.rig.format import load_calibration, load_rig
 
-    result = run_nerfacto(rig, out, preset, steps, pose_optimizer, rays=rays if rays is not None else raw["rays"], seed=0)
+    result = run_nerfacto(rig, out, preset, steps, pose_optimizer, rays=rays if rays is not None else raw["rays"])
     rig_ = load_rig(rig)
     truth = load_calibration(rig / "ground_truth.json")
     data = RigData.from_rig(rig_, truth)
@@ -250,7 +240,7 @@ def run_bench(cfg: BenchConfig) -> dict:
         for r in ok:
             for s, e in r["errors_before"].items():
                 before.setdefault(s, []).append(e)
-        before = {s: {k: float(np.mean([e[k] for e in es])) for k in ERR_KEYS} for s, es in before.items()}
+        before = {s: {k: float(np.mean([e[k] for e in es])) for k in ERROR_KEYS} for s, es in before.items()}
         frame = {key: merge_frame_errors([r[key] for r in ok]) for key in ("frame_errors", "frame_errors_prior")}
         cases.append({"lidar_first": stage_errors(ok), "id": case["id"], "tables": case["tables"], "perturb": case["perturb"], "optimise": case.get("optimise", "both"),
                       "patch_size": case.get("patch_size"),

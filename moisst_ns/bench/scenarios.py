@@ -8,8 +8,6 @@ from typing import List, Tuple
 
 LOSS_SWITCHES = {"no-depth": "depth_loss", "no-dssim": "dssim_loss", "no-depth-smoothness": "depth_smoothness_loss"}
 OPTIMISE = ("both", "spatial", "temporal")
-ERR_KEYS = ("translation_cm", "rotation_deg", "time_ms")
-HIST_KEYS = ("err_translation_cm", "err_rotation_deg", "err_time_ms")
 
 
 class BenchError(ValueError):

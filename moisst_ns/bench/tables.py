@@ -7,7 +7,8 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from moisst_ns.bench.scenarios import ERR_KEYS, HIST_KEYS
+from moisst_ns.runs import ERROR_KEYS
+from moisst_ns.runs.history import ERROR_COLUMNS
 
 # ----------------------------------------------------------------------------------------------------------------
 # Aggregation
@@ -20,7 +21,7 @@ def pooled(runs: List[dict], last: int) -> Dict[str, Dict[str, Tuple[float, floa
         if "history" not in run:
             continue
         for sensor, cols in run["history"].items():
-            for key, hkey in zip(ERR_KEYS, HIST_KEYS):
+            for key, hkey in zip(ERROR_KEYS, ERROR_COLUMNS):
                 values.setdefault(sensor, {}).setdefault(key, []).extend(cols[hkey][-last:])
     return {s: {k: (float(np.mean(v)), float(np.std(v))) for k, v in keys.items()} for s, keys in values.items()}
 
@@ -62,8 +63,8 @@ def stage_errors(runs: List[dict]) -> Dict[str, Dict[str, float]]:
     for run in runs:
         for sensor, entry in run.get("lidar_first", {}).items():
             if "errors_after" in entry:
-                cell = out.setdefault(sensor, {k: [] for k in ERR_KEYS + ("wall_s",)})
-                for k in ERR_KEYS:
+                cell = out.setdefault(sensor, {k: [] for k in ERROR_KEYS + ("wall_s",)})
+                for k in ERROR_KEYS:
                     cell[k].append(entry["errors_after"][k])
                 cell["wall_s"].append(entry["wall_s"])
     return {s: {k: float(np.mean(v)) for k, v in cols.items()} for s, cols in out.items()}
@@ -207,7 +208,7 @@ def plot_error_vs_time(run: dict, path: Path, title: str) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     for sensor, cols in run.get("history", {}).items():
-        for ax, key, label in zip(axes, HIST_KEYS, ("translation error (cm)", "rotation error (deg)", "time error (ms)")):
+        for ax, key, label in zip(axes, ERROR_COLUMNS, ("translation error (cm)", "rotation error (deg)", "time error (ms)")):
             ax.plot(cols["elapsed_s"], cols[key], marker=".", label=sensor)
             ax.set_xlabel("wall time (s)")
             ax.set_ylabel(label)

@@ -11,6 +11,3 @@ def main() -> None:
     """Console script ``moisst-bag-to-rig``."""
     run_converter("moisst-bag-to-rig", BagConfig, convert, "source", log=True)
 
-
-if __name__ == "__main__":
-    main()

@@ -22,6 +22,3 @@ def main() -> None:
     except BenchError as err:
         fail("moisst-bench", err)
 
-
-if __name__ == "__main__":
-    main()

@@ -50,6 +50,3 @@ def main() -> None:
         print(f"{PROG}: not converged: {', '.join(bad)} (exit status {NOT_CONVERGED_EXIT}; see calibration.json 'reason')", file=sys.stderr)
         raise SystemExit(NOT_CONVERGED_EXIT)
 
-
-if __name__ == "__main__":
-    main()

@@ -1,30 +1,18 @@
-"""``moisst-eval``: errors of a calibration against the ground truth, or the statistics of a run's history.
-
-* ``moisst-eval CALIBRATION.json GROUND_TRUTH.json [--json]``: per non-reference sensor, translation error (cm, L2),
-  rotation error (deg, geodesic) and time error (ms, absolute) (``calibration_report_errors``).
-* ``moisst-eval A/calibration.json B/calibration.json``: when the *second* file carries ``uncertainty`` fields it
-  is another estimate, not the truth (a ground-truth file never has them): per sensor, the difference B - A of each
-  of the 7 parameters and its size in units of the combined sigma ``sqrt(sA^2 + sB^2)`` (two independent estimates,
-  e.g. the two halves of a drive: agreement means |d| / sigma <= 3). With a truth as second file and sigmas in the
-  first, the errors table is followed by each parameter's error in the estimate's sigma units.
-* ``moisst-eval --history RUN_DIR [--last N] [--columns all|errors|estimates] [--json]``: per sensor, mean and
-  standard deviation (population, numpy's default ``ddof=0``) of the last N logged rows of
-  ``RUN_DIR/calibration_history.csv``: the error columns (when logged, i.e. the dataset has ground truth) and the
-  estimates x, y, z (m), roll, pitch, yaw (deg), delta (ms). The paper reports the mean over its last epochs.
-
-Errors are one line, ``moisst-eval: error: ...``, exit status 2. Nothing here imports nerfstudio.
+"""``moisst-eval``: errors of a calibration against the ground truth (or its difference from a second estimate, in σ
+units), or the statistics of a run's history (``--history``); what each prints: ``docs/outputs.md``. Errors are one
+line, ``moisst-eval: error: ...``, exit status 2. Nothing here imports nerfstudio.
 """
 
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Dict, Literal, Optional
 
 import tyro
 
+from moisst_ns.cli.common import fail
 from moisst_ns.runs import RunError
 from moisst_ns.runs.history import find_history, format_error_table, format_stats_table, history_stats, read_history
 
@@ -53,6 +41,19 @@ class EvaluateConfig:
 # --- calibration vs ground truth ------------------------------------------------------------------------------
 
 
+def _load_pair(first: Path, second: Path) -> tuple:
+    """Both calibration files; ``RunError`` when one is unreadable or invalid or their reference sensors differ."""
+    from moisst_ns.rig.format import RigFormatError, load_calibration
+
+    try:
+        a, b = load_calibration(first), load_calibration(second)
+    except RigFormatError as err:
+        raise RunError(str(err)) from None
+    if a.reference_sensor != b.reference_sensor:
+        raise RunError(f"{first}: reference_sensor: {a.reference_sensor!r}, but {second} has {b.reference_sensor!r}")
+    return a, b
+
+
 def compare_files(calibration: Path, ground_truth: Path) -> Dict[str, Dict[str, float]]:
     """Per-sensor errors of a calibration file against a ground-truth file (the reference sensor skipped).
 
@@ -67,14 +68,8 @@ def compare_files(calibration: Path, ground_truth: Path) -> Dict[str, Dict[str, 
         RunError: unreadable / invalid file (``RigFormatError`` message), other reference, no common sensor.
     """
     from moisst_ns.rig.calibration import calibration_report_errors
-    from moisst_ns.rig.format import RigFormatError, load_calibration
 
-    try:
-        estimate, truth = load_calibration(calibration), load_calibration(ground_truth)
-    except RigFormatError as err:
-        raise RunError(str(err)) from None
-    if estimate.reference_sensor != truth.reference_sensor:
-        raise RunError(f"{calibration}: reference_sensor: {estimate.reference_sensor!r}, but {ground_truth} has {truth.reference_sensor!r}")
+    estimate, truth = _load_pair(calibration, ground_truth)
     errors = {k: v for k, v in calibration_report_errors(estimate, truth).items() if k != truth.reference_sensor}
     if not errors:
         raise RunError(f"{calibration}: sensors: no non-reference sensor in common with {ground_truth}")
@@ -119,15 +114,9 @@ def sigma_table(first: Path, second: Path) -> dict:
     Raises:
         RunError: unreadable file or another reference sensor.
     """
-    from moisst_ns.rig.format import RigFormatError, load_calibration
     from moisst_ns.rig.trust import parameter_difference, sigma_units
 
-    try:
-        a, b = load_calibration(first), load_calibration(second)
-    except RigFormatError as err:
-        raise RunError(str(err)) from None
-    if a.reference_sensor != b.reference_sensor:
-        raise RunError(f"{first}: reference_sensor: {a.reference_sensor!r}, but {second} has {b.reference_sensor!r}")
+    a, b = _load_pair(first, second)
     second_is_estimate = any(t.sigmas() is not None for t in b.trust.values())
     sensors = {}
     for name in a.T_ref_sensor:
@@ -170,9 +159,7 @@ def main() -> None:
     try:
         text = run_evaluate(cfg)
     except (RunError, OSError) as err:
-        message = str(err).replace("\r", "\\r").replace("\n", "\\n")
-        print(f"moisst-eval: error: {message}", file=sys.stderr)
-        raise SystemExit(2)
+        fail("moisst-eval", err)
     print(text)
 
 

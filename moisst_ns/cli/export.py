@@ -1,21 +1,6 @@
-"""``moisst-export --load-config RUN/config.yml --output-dir OUT``: take a calibration run's result home.
-
-Writes, from the run's checkpoint (not from a file the run left behind):
-
-* ``OUT/calibration.json``: the estimate in the ``ground_truth.json`` schema (``T_ref_sensor`` 4x4, metres, the
-  dataset's own frame; ``time_offset`` seconds).
-* ``OUT/rig.calibrated.json``: the dataset's rig.json with every sensor's prior replaced by the estimate. Its
-  ``trajectory`` and ``file_path`` entries are the original dataset-relative paths: ``load_rig`` refuses paths
-  that leave the folder of the json (``docs/rig-format.md``, *Paths*), so the file is meant to be copied next to
-  the dataset's rig.json (as ``rig.json`` of a copy of the dataset, or under its own name:
-  ``load_rig(DATASET/rig.calibrated.json)``).
-* ``OUT/summary.json`` and ``OUT/summary.md``: per sensor x, y, z (m), roll, pitch, yaw (deg), delta (ms), the
-  change from the prior, and, when the dataset ships ``ground_truth.json``, the errors before and after.
-
-When the run's ``OUT/calibration.json`` (moisst-calibrate's) matches the checkpoint, its per-sensor sigma, verdict,
-weak parameters and reason (and any prior it kept) are exported too (``runs.folder.run_trust``).
-
-Nothing is written into the dataset folder (an output folder inside it is refused). Errors are one line,
+"""``moisst-export --load-config RUN/config.yml --output-dir OUT``: take a calibration run's result home, from its
+checkpoint: ``calibration.json``, ``rig.calibrated.json``, ``summary.json`` and ``summary.md`` (what each holds:
+``docs/outputs.md``, "Taking the result home"). Nothing is written into the dataset folder. Errors are one line,
 ``moisst-export: error: ...``, exit status 2.
 """
 
@@ -105,6 +90,3 @@ def main() -> None:
     for name in ("calibration.json", "rig.calibrated.json", "summary.json", "summary.md"):
         print(f"wrote {out / name}")
 
-
-if __name__ == "__main__":
-    main()

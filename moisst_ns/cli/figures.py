@@ -96,6 +96,3 @@ def main() -> None:
     else:
         print(f"{cfg.readme} already up to date")
 
-
-if __name__ == "__main__":
-    main()

@@ -85,6 +85,3 @@ def run_lidar_calibration(cfg: LidarCalibrateConfig) -> dict:
 def main() -> None:
     run_lidar_calibration(tyro.cli(LidarCalibrateConfig))
 
-
-if __name__ == "__main__":
-    main()

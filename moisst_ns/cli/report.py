@@ -47,6 +47,3 @@ def main() -> None:
         fail("moisst-report", err)
     print(f"wrote {report}")
 
-
-if __name__ == "__main__":
-    main()

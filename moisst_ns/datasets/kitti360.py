@@ -1,28 +1,6 @@
-"""KITTI-360, read from its download layout, converted to ``moisst-rig/1`` (``moisst-kitti360-to-rig``).
-
-Pure numpy / OpenCV / PyYAML; no nerfstudio. The nerfstudio dataparser ``moisst-kitti360``
-(``moisst_ns.data.kitti360_dataparser``) calls ``convert`` into a cache folder and reads the result.
-
-Frames and conventions (KITTI-360 devkit, ``kitti360scripts/helpers/project.py``, and the paper, section IV-A):
-
-* ``calib_cam_to_pose.txt``: ``pose_T_camX`` (unrectified camera X -> vehicle pose frame, 3x4).
-* ``perspective.txt``: ``R_rect_0X`` rotates unrectified camera X into its rectified frame
-  (``p_rect = R_rect_0X p_cam``); ``P_rect_0X`` holds the rectified intrinsics; ``S_rect_0X`` the size.
-* ``calib_cam_to_velo.txt``: ``velo_T_cam0`` (unrectified camera 0 -> Velodyne).
-* ``poses.txt``: ``world_T_pose`` per image_00 frame index (not every frame has one);
-  ``cam0_to_world.txt``: ``world_T_rect0`` (rectified camera 0 -> world), the reference trajectory.
-* ``image_02.yaml`` / ``image_03.yaml``: MEI (unified omnidirectional) fisheye models of the side cameras.
-
-The reference sensor is the rectified ``image_00`` (as in the paper). Extrinsics of the other sensors in its frame::
-
-    T_rect0_rect1 = R_rect_00 · pose_T_cam0^-1 · pose_T_cam1 · R_rect_01^-1
-    T_rect0_fishX = R_rect_00 · pose_T_cam0^-1 · pose_T_camX          (X = 2, 3; rectified to a pinhole, same axes)
-    T_rect0_velo  = R_rect_00 · velo_T_cam0^-1
-
-Time: the per-sensor ``timestamps.txt`` are taken as the truth (ground-truth offsets 0); rig timestamps are
-seconds since the sequence's first ``image_00`` timestamp, computed in integer nanoseconds.
-Principal points: KITTI gives pixel-centre-at-integer (OpenCV) coordinates, nerfstudio/moisst-rig put pixel
-centres at +0.5, so ``cx_rig = cx_kitti + 0.5``.
+"""KITTI-360, read from its download layout, converted to ``moisst-rig/1`` (``moisst-kitti360-to-rig``; the nerfstudio
+dataparser ``moisst-kitti360`` calls ``convert`` into a cache folder). numpy / OpenCV / PyYAML; no nerfstudio.
+The files read, the extrinsics in the rectified ``image_00`` frame, timestamps and intrinsics: ``docs/kitti360.md``.
 """
 
 from __future__ import annotations
@@ -36,10 +14,10 @@ import numpy as np
 import tyro
 
 from moisst_ns.datasets.kitti360_io import (CAMERAS, PERSPECTIVE, REFERENCE, SUFFIX, VELODYNE, Kitti360Error, MeiCamera, Perspective,
-                                             _cameras, _inv, _Layout, _perturbed, _require, _rot4, _write_image, format_timestamp,
+                                             _cameras, _Layout, _perturbed, _require, _write_image, format_timestamp,
                                              read_cam_to_pose, read_cam_to_velo, read_indexed_poses, read_mei_yaml,
                                              read_perspective, read_timestamps)
-from moisst_ns.datasets.rig_writer import prepare_out, scaled_intrinsics, write_rig, write_trajectory
+from moisst_ns.datasets.rig_writer import inverse, prepare_out, rigid, scaled_intrinsics, write_rig, write_trajectory
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -93,20 +71,20 @@ def read_calibration(paths: Kitti360Paths, cameras: Sequence[str], lidar: bool) 
     calib = _require(paths.calibration, "calibration folder")
     cam_to_pose = read_cam_to_pose(calib / "calib_cam_to_pose.txt", sorted(set(cameras) | {REFERENCE}))
     persp = read_perspective(calib / "perspective.txt", sorted(set(cameras) | {REFERENCE}))
-    rect0_T_cam0 = _rot4(persp[REFERENCE].R_rect)
-    rect0_T_pose = rect0_T_cam0 @ _inv(cam_to_pose[REFERENCE])
+    rect0_T_cam0 = rigid(persp[REFERENCE].R_rect)
+    rect0_T_pose = rect0_T_cam0 @ inverse(cam_to_pose[REFERENCE])
     T_ref: Dict[str, np.ndarray] = {}
     fisheye: Dict[str, MeiCamera] = {}
     for cam in cameras:
         if cam in PERSPECTIVE:
-            T_ref[cam] = rect0_T_pose @ cam_to_pose[cam] @ _rot4(persp[cam].R_rect.T)
+            T_ref[cam] = rect0_T_pose @ cam_to_pose[cam] @ rigid(persp[cam].R_rect.T)
         else:
             T_ref[cam] = rect0_T_pose @ cam_to_pose[cam]
             fisheye[cam] = read_mei_yaml(calib / f"{cam}.yaml")
     if lidar:
-        T_ref[VELODYNE] = rect0_T_cam0 @ _inv(read_cam_to_velo(calib / "calib_cam_to_velo.txt"))
+        T_ref[VELODYNE] = rect0_T_cam0 @ inverse(read_cam_to_velo(calib / "calib_cam_to_velo.txt"))
     T_ref[REFERENCE] = np.eye(4)
-    return Kitti360Calibration(T_ref=T_ref, perspective=persp, fisheye=fisheye, pose_T_rect0=_inv(rect0_T_pose))
+    return Kitti360Calibration(T_ref=T_ref, perspective=persp, fisheye=fisheye, pose_T_rect0=inverse(rect0_T_pose))
 
 
 def rectify_map(camera: MeiCamera, K: np.ndarray, size: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray]:

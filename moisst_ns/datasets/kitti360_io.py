@@ -12,7 +12,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from moisst_ns.datasets.rig_writer import shrink
+from moisst_ns.datasets.rig_writer import rigid, shrink
 from moisst_ns.rig.format import RigFormatError
 
 CAMERAS = ("image_00", "image_01", "image_02", "image_03")
@@ -32,22 +32,8 @@ class Kitti360Error(RigFormatError):
 
 
 def _rigid(values: Sequence[float]) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :4] = np.asarray(values, dtype=np.float64).reshape(3, 4)
-    return pose
-
-
-def _inv(pose: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = pose[:3, :3].T
-    out[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
-    return out
-
-
-def _rot4(rotation: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = rotation
-    return out
+    values = np.asarray(values, dtype=np.float64).reshape(3, 4)
+    return rigid(values[:, :3], values[:, 3])
 
 
 class _Layout:
@@ -207,27 +193,6 @@ class MeiCamera:
         yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
         return np.stack([self.gamma1 * xd + self.u0, self.gamma2 * yd + self.v0], axis=-1), valid
 
-    def unproject(self, pixels: np.ndarray) -> np.ndarray:
-        """Unit ray directions of pixels (inverse of ``project``; distortion inverted with OpenCV's iteration).
-
-        Args:
-            pixels: (N, 2) pixel coordinates u, v (pixel centres at integers).
-
-        Returns:
-            (N, 3) unit directions in the camera frame.
-        """
-        import cv2
-
-        uv = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
-        K = np.array([[self.gamma1, 0.0, self.u0], [0.0, self.gamma2, self.v0], [0.0, 0.0, 1.0]])
-        dist = np.array([self.k1, self.k2, self.p1, self.p2])
-        m = cv2.undistortPointsIter(uv, K, dist, None, None, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
-        m = m.reshape(-1, 2)
-        r2 = (m * m).sum(axis=1)
-        factor = (self.xi + np.sqrt(1.0 + (1.0 - self.xi**2) * r2)) / (1.0 + r2)
-        d = np.stack([factor * m[:, 0], factor * m[:, 1], factor - self.xi], axis=1)
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
-
 
 MEI_KEYS = {
     "mirror_parameters": ("xi",),
@@ -353,18 +318,9 @@ def _cameras(config, cameras: Sequence[str], dataset: str) -> List[str]:
 
 
 def _perturbed(config, T_ref: Dict[str, np.ndarray]) -> Dict[str, Tuple[np.ndarray, float]]:
-    from moisst_ns.datasets.synth_rig import paper_perturbation
+    from moisst_ns.datasets.synth_rig import perturbed_priors
 
-    rng = np.random.default_rng(config.seed)
-    priors = {}
-    for name in sorted(T_ref):
-        signs = rng.choice([-1.0, 1.0], size=7)
-        if name == REFERENCE or config.perturb == "none":
-            priors[name] = (T_ref[name].copy(), 0.0)
-            continue
-        priors[name] = paper_perturbation(T_ref[name], 0.0, signs, config.perturb_translation, config.perturb_rotation,
-                                          config.perturb_time)
-    return priors
+    return perturbed_priors(config, sorted(T_ref), {n: (T, 0.0) for n, T in T_ref.items()}, np.random.default_rng(config.seed), REFERENCE)
 
 
 def _write_image(src: Path, dst: Path, size: Tuple[int, int], factor: int, copy: bool, says: str, remap=None) -> None:

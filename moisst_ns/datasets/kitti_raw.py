@@ -1,30 +1,7 @@
 """KITTI raw (a synced + rectified drive), read from its download layout, converted to ``moisst-rig/1``
-(``moisst-kitti-raw-to-rig``). numpy / OpenCV / SciPy; no nerfstudio. See ``docs/kitti-raw.md``.
-
-Frames and conventions (KITTI raw devkit ``readme.txt`` and ``convertOxtsToPose.m``, as pykitti reads them):
-
-* ``calib_cam_to_cam.txt``: ``P_rect_0X = K [I | b_X]`` projects a point of the *rectified camera 0* frame into the
-  rectified image X (``b_X = K^-1 P_rect_0X[:, 3]``): rectified camera X has camera 0's rectified axes and sits at
-  ``-b_X``; ``R_rect_00`` rotates unrectified camera 0 into the rectified frame; ``S_rect_0X`` is the image size.
-* ``calib_velo_to_cam.txt``: ``cam0_T_velo`` (``R``, ``T``: Velodyne -> unrectified camera 0).
-* ``calib_imu_to_velo.txt``: ``velo_T_imu`` (OXTS IMU -> Velodyne).
-* ``oxts/data/*.txt``: one GPS/INS packet per sample (``oxts/dataformat.txt``: lat, lon, alt, roll, pitch, yaw, ...);
-  ``world_T_imu`` as ``convertOxtsToPose``: Mercator scale ``s = cos(lat_0)`` of the first sample, Earth radius
-  ``er = 6378137``, ``t = (s er lon pi/180, s er log(tan((90 + lat) pi/360)), alt)``, ``R = Rz(yaw) Ry(pitch) Rx(roll)``;
-  the first sample's translation is subtracted.
-
-The reference sensor is the rectified ``image_00``. Extrinsics in its frame, and the reference trajectory::
-
-    T_rect0_rectX = [I | -b_X]
-    T_rect0_velo  = R_rect_00 · cam0_T_velo
-    world_T_rect0 = world_T_imu · (T_rect0_velo · velo_T_imu)^-1      (at every OXTS sample, its timestamp)
-
-Time: rig timestamps are seconds since the drive's first ``image_00`` timestamp (integer nanoseconds). The cameras
-are triggered when the Velodyne faces forward, the instant ``velodyne_points/timestamps.txt`` records; the cameras'
-own ``timestamps.txt`` add 6-20 ms of recording latency. ``--stamps trigger`` (default) stamps camera frame k with
-the Velodyne's timestamp k; ``--stamps recorded`` with the camera's own. Ground-truth offsets are 0.
-Velodyne sweeps: the HDL-64E spins clockwise seen from above (``sweep_times``; tests/test_kitti_raw.py checks it on
-the data), a sweep lasts ``timestamps_end - timestamps_start`` (~103 ms) centred on the forward-facing instant.
+(``moisst-kitti-raw-to-rig``). numpy / OpenCV / SciPy; no nerfstudio. The calibration files, the OXTS trajectory
+(``convertOxtsToPose``), the extrinsics in the rectified ``image_00`` frame, the trigger time stamps and the Velodyne
+sweep times: ``docs/kitti-raw.md``.
 """
 
 from __future__ import annotations
@@ -37,10 +14,10 @@ import numpy as np
 import tyro
 
 from moisst_ns.datasets.kitti360 import sensor_stamps
-from moisst_ns.datasets.kitti360_io import (CAMERAS, REFERENCE, VELODYNE, Kitti360Error, Perspective, _cameras, _check_rotation, _inv,
-                                             _Layout, _perturbed, _require, _rot4, _values, _write_image, format_timestamp,
+from moisst_ns.datasets.kitti360_io import (CAMERAS, REFERENCE, VELODYNE, Kitti360Error, Perspective, _cameras, _check_rotation,
+                                             _Layout, _perturbed, _require, _values, _write_image, format_timestamp,
                                              read_key_values, read_perspective, read_timestamps)
-from moisst_ns.datasets.rig_writer import prepare_out, scaled_intrinsics, write_rig, write_trajectory
+from moisst_ns.datasets.rig_writer import inverse, prepare_out, rigid, scaled_intrinsics, write_rig, write_trajectory
 
 COLOUR = ("image_02", "image_03")
 EARTH_RADIUS = 6378137.0
@@ -92,7 +69,7 @@ def read_rt(path: Path) -> np.ndarray:
     """``calib_velo_to_cam.txt`` / ``calib_imu_to_velo.txt`` (``R:`` 9 numbers, ``T:`` 3) -> 4x4 (``b_T_a`` of
     ``calib_a_to_b``: maps points of sensor a into sensor b's frame)."""
     table = read_key_values(path)
-    pose = _rot4(_values(table, "R", 9, path).reshape(3, 3))
+    pose = rigid(_values(table, "R", 9, path).reshape(3, 3))
     _check_rotation(pose[:3, :3], path, "R")
     pose[:3, 3] = _values(table, "T", 3, path)
     return pose
@@ -117,7 +94,7 @@ def read_calibration(paths: KittiRawPaths, cameras: Sequence[str]) -> KittiRawCa
         T_ref[cam] = np.eye(4)
         T_ref[cam][:3, 3] = 0.0 - persp[cam].offset
     T_ref[REFERENCE] = np.eye(4)
-    T_ref[VELODYNE] = _rot4(persp[REFERENCE].R_rect) @ read_rt(paths.calib_dir / "calib_velo_to_cam.txt")
+    T_ref[VELODYNE] = rigid(persp[REFERENCE].R_rect) @ read_rt(paths.calib_dir / "calib_velo_to_cam.txt")
     ref_T_imu = T_ref[VELODYNE] @ read_rt(paths.calib_dir / "calib_imu_to_velo.txt")
     return KittiRawCalibration(T_ref=T_ref, perspective=persp, ref_T_imu=ref_T_imu)
 
@@ -289,7 +266,7 @@ checked before anything is written (an unreadable or wrong-sized image or scan s
                       "must not be inside the KITTI raw folder (nothing is written into the dataset)")
 
     origin = int(ref_all[0])
-    write_trajectory(out / "reference_poses.txt", (oxts_stamps - origin) * 1e-9, oxts_poses(packets) @ _inv(calib.ref_T_imu),
+    write_trajectory(out / "reference_poses.txt", (oxts_stamps - origin) * 1e-9, oxts_poses(packets) @ inverse(calib.ref_T_imu),
                      header=f"world_T_image_00 (rectified) from the OXTS of {config.drive}: timestamp tx ty tz qx qy qz qw")
     factor = config.downscale
     intr = {cam: scaled_intrinsics(calib.perspective[cam].K, calib.perspective[cam].size, factor) for cam in cameras}

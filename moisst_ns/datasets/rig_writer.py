@@ -5,6 +5,7 @@ and ``rig.json`` / ``ground_truth.json``. numpy (OpenCV inside ``shrink``); no t
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import asdict
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -12,8 +13,29 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from jaxtyping import Float
 
-from moisst_ns.datasets.output import clear_generated_dataset
 from moisst_ns.rig.format import Calibration, rig_json, write_tum
+
+
+def rigid(rotation=np.eye(3), translation=(0.0, 0.0, 0.0)) -> Float[np.ndarray, "4 4"]:
+    """The 4x4 pose ``[rotation | translation]`` (float64)."""
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = translation
+    return pose
+
+
+def inverse(pose: Float[np.ndarray, "4 4"]) -> Float[np.ndarray, "4 4"]:
+    """The inverse of a rigid 4x4 pose."""
+    return rigid(pose[:3, :3].T, -pose[:3, :3].T @ pose[:3, 3])
+
+
+def clear_generated_dataset(out: Path) -> None:
+    """Remove what a dataset generator or converter writes into ``out`` (other files there are left alone)."""
+    for name in ("rig.json", "reference_poses.txt", "ground_truth.json"):
+        (Path(out) / name).unlink(missing_ok=True)
+    for name in ("images", "lidar"):
+        if (Path(out) / name).is_dir():
+            shutil.rmtree(Path(out) / name)
 
 
 def prepare_out(out: Path, sources: Sequence[Path], overwrite: bool, error: type, inside: str, clear: bool = True) -> Path:

@@ -1,16 +1,7 @@
-"""ROS bags to ``moisst-rig/1`` (``moisst-bag-to-rig``): ROS 1 ``.bag`` files, ROS 2 bags (sqlite3 or MCAP, a
-folder with ``metadata.yaml`` or a bare ``.db3`` / ``.mcap``) read with the pure-Python ``rosbags`` library (no ROS
-install). See ``docs/bags.md``; message decoding is in ``moisst_ns.datasets.rosbag_msgs``.
-
-Streamed: the bag is read one message at a time (rosbags' ``AnyReader``) and every frame is written as it comes, so
-memory holds one frame, the frames' list and the trajectory's poses. Everything goes into a temporary folder beside
-``--out``, moved into place only when the whole conversion succeeded: a failure leaves nothing behind. The bags are
-only read (sqlite3 opened immutable).
-
-Conventions: a sensor's frame is its messages' ``header.frame_id`` (for a camera the optical frame: x right, y down,
-z forward, as moisst-rig's cameras); priors ``T_ref_sensor`` = ``ref_frame <- sensor_frame`` composed from
-``/tf_static``. Stamps are integer nanoseconds until the end; rig timestamps are seconds since ``time_origin``
-(``(ns - origin) / 1e9``, exact to the nanosecond for drives shorter than ~100 days).
+"""ROS bags to ``moisst-rig/1`` (``moisst-bag-to-rig``): ROS 1 and ROS 2 (sqlite3, MCAP) bags read with the pure-Python
+``rosbags`` library, streamed one message at a time into a temporary folder beside ``--out`` that is moved into place
+only when everything succeeded. Frames, stamps, priors and options: ``docs/bags.md``; message decoding is in
+``moisst_ns.datasets.rosbag_msgs``.
 """
 
 from __future__ import annotations

@@ -16,8 +16,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 from jaxtyping import Float, Float32, UInt8
 
-from moisst_ns.datasets.kitti360_io import _inv
-from moisst_ns.datasets.rig_writer import scaled_intrinsics, shrink
+from moisst_ns.datasets.rig_writer import inverse, scaled_intrinsics, shrink
 from moisst_ns.rig.format import RigFormatError
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -104,7 +103,7 @@ class StaticTf:
         """Add every transform of a ``tf2_msgs/TFMessage`` (parent_T_child and its inverse)."""
         for parent, child, _, T in poses_of(msg, TF):
             self.edges.setdefault(child, {})[parent] = T
-            self.edges.setdefault(parent, {})[child] = _inv(T)
+            self.edges.setdefault(parent, {})[child] = inverse(T)
 
     def lookup(self, target: str, source: str) -> Optional[Float[np.ndarray, "4 4"]]:
         """``target_T_source`` (maps points of frame ``source`` into ``target``), or None when not linked."""

@@ -1,29 +1,17 @@
 """``moisst-synth``: synthetic multi-sensor rigs with exact ground truth, in the ``moisst-rig/1`` format.
 
-A vehicle drives a smooth path that turns (heading changes by tens of degrees) and changes speed (4 <-> 9 m/s)
-through a textured box world (``street`` or ``plaza`` layout), carrying three pinhole cameras and a spinning
-LiDAR, all at 10 Hz but triggered at different phases of the cycle and with true clock offsets of 20-60 ms.
-
-The data are exactly consistent with the calibration model of ``moisst_ns.rig.geometry``: the reference
-trajectory is written to ``reference_poses.txt`` first, read back, and a frame of sensor ``i`` stamped ``t`` (its
-own clock) is rendered at ``world_T_i = T_r(t + delta_i) @ ref_T_i`` (paper eq. 1-2) with ``T_r`` interpolating the
-written samples. LiDAR points are motion-distorted like a raw scan: a point fired ``tau`` seconds after the frame
-stamp is expressed in the LiDAR frame at ``T_r(t + delta_L + tau) @ ref_T_L``.
-
-Geometry is rendered by ray casting (``open3d.t.geometry.RaycastingScene``); colours come from photographs shipped
-inside scikit-image, mapped per object by a planar (box) projection of the hit point, tiled at several metre scales,
-sampled trilinearly from a mip pyramid, with view-independent Lambert shading. Everything is seeded: the same
-configuration gives byte-identical files. Real-world effects (``--realistic``, ``--rolling-shutter``: trajectory noise
-and drift, exposure, vignetting, distortion, moving vehicles, blur, JPEG, LiDAR noise and dropouts) are off by default;
-they live in ``synth_effects`` and the frames are rendered and written by ``synth_render``.
-
-Axes: world z up; vehicle frame x forward, y left, z up; cameras OpenCV (x right, y down, z forward); LiDAR x forward,
-y left, z up.
+A vehicle drives a turning path at varying speed through a textured box world (``street`` or ``plaza``), carrying
+three pinhole cameras and a spinning LiDAR at 10 Hz, triggered at different phases and with true clock offsets of
+20-60 ms. The data are exactly consistent with ``moisst_ns.rig.geometry``: the reference trajectory is written to
+``reference_poses.txt`` first and read back, and a frame of sensor ``i`` stamped ``t`` (its own clock) is rendered
+at ``T_r(t + delta_i) @ ref_T_i`` (paper eq. 1-2); a LiDAR point fired ``tau`` after the stamp at
+``T_r(t + delta_L + tau) @ ref_T_L``. Everything is seeded (same configuration, byte-identical files). The scene is
+``synth_scene``, the rig ``synth_rig``, the frames ``synth_render``, the real-world effects (off by default)
+``synth_effects``. Axes: world z up; vehicle x forward, y left, z up; cameras OpenCV; LiDAR x forward, y left, z up.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, fields
 from functools import partial
 from pathlib import Path
@@ -32,6 +20,7 @@ from typing import Annotated, Dict, List, Literal, Optional, Tuple
 import numpy as np
 import tyro
 
+from moisst_ns.datasets.rig_writer import prepare_out, unit_quats, write_rig
 from moisst_ns.datasets.synth_effects import Effects, check_effects, make_movers, perturb_trajectory, photometric_params, resolve_effects
 from moisst_ns.datasets.synth_render import PERIOD, write_camera_frames, write_lidar_frames
 from moisst_ns.datasets.synth_rig import MOUNTS, REFERENCE, SensorTruth, _streams, knock_mount, make_priors, make_truth, vehicle_T_sensor
@@ -189,28 +178,9 @@ def frame_stamps(sensor: SensorTruth, frames: int) -> List[float]:
 
 def reference_trajectory_samples(config: SynthConfig, path: VehiclePath, truth: Dict[str, SensorTruth]):
     """TUM columns of ``world_T_ref`` at the reference camera's frame times: (stamps, positions, quats xyzw)."""
-    import roma
-    import torch
-
     stamps = np.array(frame_stamps(truth[REFERENCE], config.frames))
     poses = path.world_T_vehicle(stamps - T0) @ vehicle_T_sensor(REFERENCE)
-    quats = roma.rotmat_to_unitquat(torch.from_numpy(poses[:, :3, :3])).numpy()
-    quats = quats * np.where(quats[:, 3:4] < 0, -1.0, 1.0)
-    return stamps, poses[:, :3, 3], quats
-
-
-def _prepare_out(config: SynthConfig) -> Path:
-    out = Path(config.out)
-    if out.exists() and not out.is_dir():
-        raise SynthError(f"{out} exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()):
-        if not config.overwrite:
-            raise SynthError(f"{out} exists and is not empty; pass --overwrite to replace its dataset")
-        from moisst_ns.datasets.output import clear_generated_dataset
-
-        clear_generated_dataset(out)
-    out.mkdir(parents=True, exist_ok=True)
-    return out
+    return stamps, poses[:, :3, 3], unit_quats(poses[:, :3, :3])
 
 
 def _check_config(config: SynthConfig) -> None:
@@ -241,12 +211,12 @@ def make_rig(config: SynthConfig) -> Path:
     """Generate the dataset described by ``config`` into ``config.out``; returns that folder."""
     import torch
 
-    from moisst_ns.rig.format import Calibration, load_tum, rig_json, write_tum
+    from moisst_ns.rig.format import Calibration, load_tum, write_tum
     from moisst_ns.rig.geometry import ReferenceTrajectory
 
     _check_config(config)
     fx = resolve_effects(config)
-    out = _prepare_out(config)
+    out = prepare_out(Path(config.out), [], config.overwrite, lambda out, _, problem: SynthError(f"{out} {problem}"), "")
     path = make_path(config)
     truth = make_truth(config)
     priors = make_priors(config, truth)
@@ -285,10 +255,6 @@ def make_rig(config: SynthConfig) -> Path:
             frames += write_camera_frames(out, folder, name, stamps, scene, intr, pose_at, to_path_time, fx, movers, exposure, config.supersample)
         else:
             frames += write_lidar_frames(out, folder, name, stamps, scene, config, pose_at, to_path_time, fx, movers, lidar_rngs)
-    frames.sort(key=lambda f: (f["timestamp"], f["sensor"]))
-
-    sensors = {name: (sensor.type, priors[name][0], priors[name][1], _camera_entry(intr, fx) if sensor.type == "camera" else {})
-               for name, sensor in truth.items()}
     meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")}
     switches = [f.name for f in fields(Effects) if f.name != "rolling_shutter"]  # None: off unless --realistic
     unused = {"lidar_scans": "raw", "drive": "curve", "rig_seed": None, "knock": None, "realistic": False, "rolling_shutter": 0.0,
@@ -300,8 +266,7 @@ def make_rig(config: SynthConfig) -> Path:
         meta["effects"] = fx.summary()  # what the switches resolved to (not read back by config_of_rig)
     meta["generator"] = "moisst-synth"
     meta["note"] = "priors per --perturb; true values in ground_truth.json"
-    rig = rig_json(REFERENCE, "reference_poses.txt", sensors, frames, meta)
-    (out / "rig.json").write_text(json.dumps(rig, indent=1) + "\n")
+    write_rig(out, REFERENCE, list(truth), ["lidar"], {n: _camera_entry(intr, fx) for n in cameras}, frames, priors, meta)
     Calibration(
         REFERENCE, {n: s.T_ref_sensor for n, s in truth.items()}, {n: s.time_offset for n, s in truth.items()}
     ).write(out / "ground_truth.json")

@@ -1,18 +1,8 @@
-"""The real-world effects of ``moisst-synth`` (issue 35), as pure numpy / OpenCV functions.
-
-Each effect is off by default (the generator's output is then byte-identical to what it was before these existed);
-``--realistic`` turns them all on, except the rolling shutter, at the magnitudes of ``REALISTIC``:
-
-* pose noise and drift on the *written* reference trajectory (images and scans stay at the true poses);
-* per-frame auto-exposure (gain, gamma, tint) and vignetting, applied to the rendered colours;
-* OPENCV radial lens distortion (``k1``, ``k2``): pixels are cast through the inverse of the model;
-* moving vehicles: car-size boxes driving along the road, hit by each ray at the ray's own time;
-* motion blur: the mean of ``BLUR_SAMPLES`` renders spread over the exposure time;
-* JPEG images; LiDAR range noise and random dropouts;
-* rolling shutter: row ``r`` of an ``H``-row image stamped ``t`` is exposed at ``t + readout (r - (H-1)/2) / (H-1)``
-  (``row_time_offsets``): the stamp is the middle row's time, the first and last rows ``readout`` seconds apart.
-
-Units: metres, seconds, radians inside (centimetres and degrees only where a switch takes them); pixel centres at
+"""The real-world effects of ``moisst-synth`` (issue 35), as pure numpy / OpenCV functions: pose noise and drift on
+the *written* trajectory, auto-exposure, vignetting, OPENCV radial distortion, moving vehicles, motion blur, JPEG,
+LiDAR range noise and dropouts, rolling shutter (what each does: ``SynthConfig``'s fields, ``moisst-synth --help``).
+Each is off by default (the output is then byte-identical to what it was before these existed); ``--realistic``
+turns all but the rolling shutter on at ``REALISTIC``. Units: metres, seconds, radians inside; pixel centres at
 ``+0.5`` as in ``docs/rig-format.md``.
 """
 
@@ -128,11 +118,10 @@ def check_effects(fx: Effects, intr: Dict[str, object], period: float) -> List[s
 # The written reference trajectory
 
 
-def drift_signal(times: Float[np.ndarray, "num"], rms: float, rng: np.random.Generator,
-                 periods: Tuple[float, float] = (3.0, 12.0)) -> Float[np.ndarray, "num 3"]:
-    """A slow drift per axis: three sinusoids with periods drawn in ``periods`` (seconds) and random phases, scaled so
-    that each axis' RMS over ``times`` is exactly ``rms`` (the unit of ``rms``)."""
-    period = rng.uniform(periods[0], periods[1], (3, 3))  # (axis, component)
+def drift_signal(times: Float[np.ndarray, "num"], rms: float, rng: np.random.Generator) -> Float[np.ndarray, "num 3"]:
+    """A slow drift per axis: three sinusoids with periods drawn in 3-12 s and random phases, scaled so that each
+    axis' RMS over ``times`` is exactly ``rms`` (the unit of ``rms``)."""
+    period = rng.uniform(3.0, 12.0, (3, 3))  # (axis, component)
     phase = rng.uniform(0.0, 2.0 * np.pi, (3, 3))
     waves = np.sin(2.0 * np.pi * times[:, None, None] / period[None] + phase[None]).sum(axis=2)
     return rms * waves / np.maximum(np.sqrt(np.mean(waves**2, axis=0)), 1e-12)
@@ -206,7 +195,7 @@ def pixel_directions(intr: Dict[str, object], supersample: int = 1,
                      distortion: Sequence[float] = (0.0, 0.0)) -> Float[np.ndarray, "rows cols 3"]:
     """Camera-frame ray directions (OpenCV axes, ``z = 1``, not unit) of every (sub-)pixel centre.
 
-    Without distortion exactly the pinhole rays of ``render_camera``; with ``k1``, ``k2`` the rays whose OPENCV
+    Without distortion the plain pinhole rays; with ``k1``, ``k2`` the rays whose OPENCV
     projection lands on the pixel centre.
     """
     w, h, ss = int(intr["w"]), int(intr["h"]), int(supersample)
@@ -248,7 +237,7 @@ def apply_photometric(rgb: Float[np.ndarray, "h w 3"], params: Optional[Float[np
 
 
 def to_uint8(rgb: Float[np.ndarray, "h w 3"]) -> UInt8[np.ndarray, "h w 3"]:
-    """Colours in [0, 1] to 8 bits, rounded (as ``render_camera``)."""
+    """Colours in [0, 1] to 8 bits, rounded."""
     return (np.clip(rgb, 0, 1) * 255.0 + 0.5).astype(np.uint8)
 
 

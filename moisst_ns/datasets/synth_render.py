@@ -40,25 +40,6 @@ LIDAR_MAX_RANGE = 60.0
 PoseFn = Callable[[np.ndarray], np.ndarray]
 
 
-def render_camera(scene: Scene, intr: Dict[str, object], world_T_cam: np.ndarray, supersample: int = 1) -> Tuple[np.ndarray, np.ndarray]:
-    """Render a pinhole camera (OpenCV axes; pixel centres at +0.5).
-
-    Returns:
-        (uint8 RGB image (h, w, 3), fraction of each pixel's rays that hit geometry (h, w)).
-    """
-    w, h, ss = int(intr["w"]), int(intr["h"]), int(supersample)
-    u = (np.arange(w * ss) + 0.5) / ss
-    v = (np.arange(h * ss) + 0.5) / ss
-    uu, vv = np.meshgrid(u, v)
-    dirs = np.stack([(uu - intr["cx"]) / intr["fl_x"], (vv - intr["cy"]) / intr["fl_y"], np.ones_like(uu)], axis=-1)
-    dirs = dirs.reshape(-1, 3) @ world_T_cam[:3, :3].T
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    rgb, hit = scene.colour(world_T_cam[:3, 3], dirs, 1.0 / (float(intr["fl_x"]) * ss))
-    rgb = rgb.reshape(h, ss, w, ss, 3).mean(axis=(1, 3))
-    hit = hit.reshape(h, ss, w, ss).mean(axis=(1, 3))
-    return (np.clip(rgb, 0, 1) * 255.0 + 0.5).astype(np.uint8), hit
-
-
 def shade_movers(atlas: TextureAtlas, movers: Movers, hits: Dict[str, np.ndarray], directions: Float[np.ndarray, "num 3"],
                  pixel_angle: float) -> Float[np.ndarray, "num 3"]:
     """Colours in [0, 1] of rays that hit a moving vehicle (``hits``: ``Movers.intersect``'s arrays, those rays only):
@@ -101,7 +82,7 @@ def render_frame(scene: Scene, intr: Dict[str, object], world_T_at: PoseFn, stam
     """A camera frame stamped ``stamp`` (own clock, seconds) with rolling shutter, motion blur, distortion, movers.
 
     Each (sub-)row is cast from the pose at its own time (``row_time_offsets``), each blur sample at its offset
-    (``exposure_offsets``); the samples are averaged. With every effect off, ``render_camera``'s arithmetic exactly.
+    (``exposure_offsets``); the samples are averaged. With every effect off, a plain pinhole render.
     ``rays``: ``pixel_directions(intr, supersample, distortion)`` when already computed (it is the same every frame).
 
     Returns:
@@ -141,19 +122,16 @@ def write_camera_frames(out: Path, folder: str, name: str, stamps: List[float], 
     from PIL import Image
 
     frames = []
-    if not fx.camera:
-        poses = world_T_at(np.array(stamps))
+    poses = None if fx.camera else world_T_at(np.array(stamps))  # all frames' poses at once, as always without effects
     vignette = vignetting_factor(intr, fx.vignetting) if fx.vignetting else None
-    rays = pixel_directions(intr, supersample, fx.distortion) if fx.camera else None
+    rays = pixel_directions(intr, supersample, fx.distortion)
     for k, stamp in enumerate(stamps):
-        if fx.camera:
-            rgb, _ = render_frame(scene, intr, world_T_at, stamp, to_path_time, fx.rolling_shutter, fx.motion_blur,
-                                  supersample, fx.distortion, movers, rays)
-            if vignette is not None or photometric is not None:
-                rgb = apply_photometric(rgb, None if photometric is None else photometric[k], vignette)
-            rgb = to_uint8(rgb)
-        else:
-            rgb, _ = render_camera(scene, intr, poses[k], supersample)
+        pose_at = world_T_at if poses is None else (lambda _, k=k: poses[k][None])
+        rgb, _ = render_frame(scene, intr, pose_at, stamp, to_path_time, fx.rolling_shutter, fx.motion_blur, supersample,
+                              fx.distortion, movers, rays)
+        if vignette is not None or photometric is not None:
+            rgb = apply_photometric(rgb, None if photometric is None else photometric[k], vignette)
+        rgb = to_uint8(rgb)
         rel = f"{folder}/{k:06d}.{'png' if fx.jpeg_quality is None else 'jpg'}"
         if fx.jpeg_quality is None:
             Image.fromarray(rgb).save(out / rel, format="PNG", compress_level=3)

@@ -9,6 +9,7 @@ from typing import Dict, Sequence, Tuple
 
 import numpy as np
 
+from moisst_ns.datasets.rig_writer import inverse, rigid
 from moisst_ns.datasets.synth_path import rot_x, rot_y, rot_z
 
 REFERENCE = "cam_front"
@@ -16,17 +17,6 @@ REFERENCE = "cam_front"
 
 # ----------------------------------------------------------------------------------------------------------------
 # Small rotation helpers (numpy, float64)
-
-
-def _pose(rotation: np.ndarray, translation) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3] = rotation
-    pose[:3, 3] = translation
-    return pose
-
-
-def _inv(pose: np.ndarray) -> np.ndarray:
-    return _pose(pose[:3, :3].T, -pose[:3, :3].T @ pose[:3, 3])
 
 
 def _orthonormalise(rotation: np.ndarray) -> np.ndarray:
@@ -102,7 +92,7 @@ def vehicle_T_sensor(name: str, jitter_t=(0.0, 0.0, 0.0), jitter_r=(0.0, 0.0, 0.
     body = rot_z(np.deg2rad(yaw)) @ rot_y(np.deg2rad(pitch))
     axes = V_R_OPENCV if name.startswith("cam") else np.eye(3)
     rot = body @ axes @ rot_x(jitter_r[0]) @ rot_y(jitter_r[1]) @ rot_z(jitter_r[2])
-    return _pose(_orthonormalise(rot), np.asarray(pos) + np.asarray(jitter_t))
+    return rigid(_orthonormalise(rot), np.asarray(pos) + np.asarray(jitter_t))
 
 
 def _rig_seed(config) -> int:
@@ -118,7 +108,7 @@ def knock_mount(config, truth: Dict[str, SensorTruth]) -> Dict[str, SensorTruth]
     sensor = truth[name]
     v_T_s = v_T_ref @ sensor.T_ref_sensor
     v_T_s[:3, :3] = _orthonormalise(rot_z(np.deg2rad(degrees)) @ v_T_s[:3, :3])
-    ref_T = _inv(v_T_ref) @ v_T_s
+    ref_T = inverse(v_T_ref) @ v_T_s
     ref_T[:3, :3] = _orthonormalise(ref_T[:3, :3])
     ref_T[3] = [0.0, 0.0, 0.0, 1.0]
     return {**truth, name: SensorTruth(name, sensor.type, ref_T, sensor.time_offset, sensor.phase)}
@@ -137,25 +127,32 @@ def make_truth(config) -> Dict[str, SensorTruth]:
         delta = round(float(signs[name] * rng.uniform(0.02, 0.06)), 6)
         if name == "lidar" and not config.lidar:
             continue
-        ref_T = _inv(v_T_ref) @ vehicle_T_sensor(name, jt, jr)
+        ref_T = inverse(v_T_ref) @ vehicle_T_sensor(name, jt, jr)
         ref_T[:3, :3] = _orthonormalise(ref_T[:3, :3])
         ref_T[3] = [0.0, 0.0, 0.0, 1.0]
         truth[name] = SensorTruth(name, "lidar" if name == "lidar" else "camera", ref_T, delta, PHASES[name])
     return truth
 
 
-def make_priors(config, truth: Dict[str, SensorTruth]) -> Dict[str, Tuple[np.ndarray, float]]:
-    """Priors for rig.json: the truth (--perturb none) or the paper's perturbation (--perturb paper)."""
-    rng = np.random.default_rng(_streams(_rig_seed(config))["perturb"])
+def perturbed_priors(config, names: Sequence[str], truth: Dict[str, Tuple[np.ndarray, float]], rng: np.random.Generator,
+                     reference: str) -> Dict[str, Tuple[np.ndarray, float]]:
+    """Priors for rig.json of ``truth`` (name -> (T_ref_sensor, time offset)): the truth (``config.perturb`` 'none',
+    and always for ``reference``) or ``paper_perturbation`` with ``config.perturb_*``. Seven signs are drawn from
+    ``rng`` for every one of ``names`` in order, present in ``truth`` or not (the signs do not depend on which are)."""
     priors = {}
-    for name in ("cam_front", "cam_front_right", "cam_left", "lidar"):
-        signs = rng.choice([-1.0, 1.0], size=7)  # drawn for every sensor, so signs do not depend on --no-lidar
+    for name in names:
+        signs = rng.choice([-1.0, 1.0], size=7)
         if name not in truth:
             continue
-        t = truth[name]
-        if name == REFERENCE or config.perturb == "none":
-            priors[name] = (t.T_ref_sensor.copy(), t.time_offset)
-            continue
-        priors[name] = paper_perturbation(t.T_ref_sensor, t.time_offset, signs, config.perturb_translation,
-                                          config.perturb_rotation, config.perturb_time)
+        T, offset = truth[name]
+        if name == reference or config.perturb == "none":
+            priors[name] = (T.copy(), offset)
+        else:
+            priors[name] = paper_perturbation(T, offset, signs, config.perturb_translation, config.perturb_rotation, config.perturb_time)
     return priors
+
+
+def make_priors(config, truth: Dict[str, SensorTruth]) -> Dict[str, Tuple[np.ndarray, float]]:
+    """Priors for rig.json: the truth (--perturb none) or the paper's perturbation (--perturb paper)."""
+    return perturbed_priors(config, tuple(MOUNTS), {n: (t.T_ref_sensor, t.time_offset) for n, t in truth.items()},
+                            np.random.default_rng(_streams(_rig_seed(config))["perturb"]), REFERENCE)

@@ -212,12 +212,6 @@ class Scene:
             "normal": ans["primitive_normals"].numpy().astype(np.float64),
         }
 
-    def distance(self, points: np.ndarray) -> np.ndarray:
-        """Unsigned distance of world points (N, 3) to the nearest surface, metres."""
-        import open3d as o3d
-
-        return self.raycasting.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy()
-
     def colour(self, origins: np.ndarray, directions: np.ndarray, pixel_angle: float) -> Tuple[np.ndarray, np.ndarray]:
         """Shaded colours (N, 3) in [0, 1] of rays, and the hit mask; misses get the sky gradient.
 

@@ -1,21 +1,6 @@
 """Per-vehicle consensus of many drives' calibrations, deviations in σ units, and sensors that moved. Pure numpy.
-
-Each sensor's estimate of a drive is seven numbers relative to the consensus (``COMPONENTS``): the translation
-difference in metres and the rotation difference ``ω`` (``R_drive = Exp(ω) · R_consensus``, degrees, about the
-reference sensor's x, y, z axes), both in the reference sensor's frame, and the time offset difference in seconds.
-
-σ of a drive's component: the drive's own uncertainty when its calibration.json carries one (per sensor,
-``"uncertainty": {"translation_m": [3], "rotation_deg": [3], "time_offset_s": σ}``); otherwise the fleet's
-*spread*: 1.4826 × the median absolute residual from the per-vehicle medians, per sensor name, pooled over every
-vehicle with two or more drives and the three axes of a kind (translation, rotation, time), corrected for the
-median's own share (× sqrt(n / (n - 1)) for n drives), never below ``SIGMA_FLOOR``. The consensus is the
-weighted median (weights 1/σ²) of the drives, so one bad drive of three or more does not move it.
-
-A sensor *moved* between drives k and k+1 (drives in manifest order) when, for some component, the weighted medians
-of the drives before and after differ by more than ``flag_sigma`` σ and every single drive on each side lies beyond
-``flag_sigma`` σ of the other side's median in that direction: a step that stays, not one outlier (an outlier
-drive shows as "deviates"; a bad *last* drive cannot be told from a move). When a move is flagged, the consensus
-is that of the drives after the last move (the vehicle as it is now).
+The seven components (``COMPONENTS``), σ (a drive's own uncertainty or the fleet's robust spread), the weighted-median
+consensus and the moved-sensor rule: ``docs/fleet.md`` ("Consensus, σ and the moved-sensor flag").
 """
 
 from __future__ import annotations

@@ -1,19 +1,6 @@
-"""The fleet manifest (TOML): which drives to calibrate, of which vehicle, with which ``moisst-calibrate`` options.
-
-```toml
-[calibrate]                 # options of moisst-calibrate for every drive (its long names, with underscores)
-max_num_iterations = 200
-report = false
-
-[[drive]]                   # one table per drive, in the order they were driven (per vehicle)
-id = "van1-0412"            # unique in the manifest; the folder OUT/<vehicle>/<id>
-vehicle = "van1"
-dataset = "drives/van1-0412"  # a moisst-rig/1 folder; relative paths resolve against the manifest's folder
-seed = 7                    # any [calibrate] option may be overridden per drive
-```
-
-Everything is checked before any work starts; the first problem raises ``FleetError`` with one line naming the
-manifest, the table and the field.
+"""The fleet manifest (TOML; its format: ``docs/fleet.md``): which drives to calibrate, of which vehicle, with which
+``moisst-calibrate`` options. Everything is checked before any work starts; the first problem raises ``FleetError``
+with one line naming the manifest, the table and the field.
 """
 
 from __future__ import annotations
@@ -48,8 +35,6 @@ class Drive:
     """Its moisst-rig/1 dataset folder (absolute, resolved against the manifest's folder)."""
     options: Dict[str, Any] = field(default_factory=dict)
     """``moisst-calibrate`` options for this drive: the manifest's ``[calibrate]`` table, then its own overrides."""
-    order: int = 0
-    """Position in the manifest (the drives of a vehicle are taken to be in the order they were driven)."""
 
 
 @dataclass
@@ -59,9 +44,7 @@ class Manifest:
     path: Path
     """The manifest file."""
     drives: List[Drive]
-    """Every drive, in manifest order."""
-    calibrate: Dict[str, Any]
-    """The ``[calibrate]`` table (options for every drive)."""
+    """Every drive, in manifest order (the drives of a vehicle are taken to be in the order they were driven)."""
 
     def vehicles(self) -> Dict[str, List[Drive]]:
         """Drives per vehicle, in manifest order."""
@@ -166,5 +149,5 @@ def load_manifest(path: Path | str) -> Manifest:
         if not (dataset / "rig.json").is_file():
             what = "no such folder" if not dataset.exists() else "no rig.json in it"
             raise FleetError(f"{file}: {where}.dataset: {table['dataset']!r} ({dataset}): {what}")
-        drives.append(Drive(table["id"], table["vehicle"], dataset, options, k))
-    return Manifest(file, drives, calibrate)
+        drives.append(Drive(table["id"], table["vehicle"], dataset, options))
+    return Manifest(file, drives)

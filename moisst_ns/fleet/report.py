@@ -10,12 +10,12 @@ from typing import Any, Callable, Dict, List
 
 import numpy as np
 
-from moisst_ns.fleet.consensus import COMPONENTS, DriveEstimate, SensorEstimate, fleet_spread, sigma_from_uncertainty, vehicle_consensus
+from moisst_ns.fleet.consensus import COMPONENTS, UNITS, DriveEstimate, SensorEstimate, fleet_spread, sigma_from_uncertainty, vehicle_consensus
 from moisst_ns.fleet.manifest import Manifest, drive_dir
 
 FORMAT = "moisst-fleet/1"
 SHOW = {"m": (100.0, " cm"), "deg": (1.0, "°"), "s": (1000.0, " ms")}
-UNIT = dict(zip(COMPONENTS, ("m", "m", "m", "deg", "deg", "deg", "s")))
+UNIT = dict(zip(COMPONENTS, UNITS))
 
 
 def load_estimate(drive_id: str, path: Path) -> tuple:

@@ -1,12 +1,6 @@
 """Run a fleet: every drive is one Ray task running ``moisst_ns.calibrate.run_calibration`` (``moisst-calibrate``'s
-code path) into ``OUT/<vehicle>/<drive>/``; then the per-vehicle consensus and the reports.
-
-Ray starts locally (``address="local"``, no dashboard, no usage statistics) unless ``--address`` names a cluster, where
-``moisst_ns`` and the datasets must be reachable at the same paths on every node. Ray schedules the tasks (each asks
-for ``--cpus-per-drive`` CPUs, and runs torch with that many threads) and retries a failed one (an exception, a NaN
-stop, a killed worker) up to ``--retries`` times. A drive is finished when its marker ``fleet_done.json`` exists,
-written atomically as its task's very last step; re-running the same command skips finished drives (resume), and a
-drive folder without the marker (a killed or failed attempt) is emptied and calibrated again.
+code path) into ``OUT/<vehicle>/<drive>/``; then the per-vehicle consensus and the reports. Ray's start, the
+scheduling, retries and the resume marker ``fleet_done.json``: ``docs/fleet.md`` ("How it runs").
 """
 
 from __future__ import annotations

@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable, Optional, Tuple
 
+import numpy as np
 import roma
 import torch
 from jaxtyping import Float, Int
@@ -26,34 +27,13 @@ from torch import Tensor
 
 
 def make_pose(rotation: Float[Tensor, "*batch 3 3"], translation: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 4 4"]:
-    """Stack a rotation and a translation into a homogeneous 4x4 rigid transform.
-
-    Args:
-        rotation: rotation matrices.
-        translation: translation vectors.
-
-    Returns:
-        The 4x4 matrices ``[[R, t], [0, 0, 0, 1]]``.
-    """
+    """The 4x4 rigid transforms ``[[R, t], [0, 0, 0, 1]]`` of rotations and translations (any batch shape)."""
     batch = rotation.shape[:-2]
     pose = torch.zeros(*batch, 4, 4, dtype=rotation.dtype, device=rotation.device)
     pose[..., :3, :3] = rotation
     pose[..., :3, 3] = translation
     pose[..., 3, 3] = 1.0
     return pose
-
-
-def invert_pose(pose: Float[Tensor, "*batch 4 4"]) -> Float[Tensor, "*batch 4 4"]:
-    """Inverse of rigid transforms, using ``R^T`` instead of a general matrix inverse.
-
-    Args:
-        pose: rigid 4x4 transforms.
-
-    Returns:
-        Their inverses.
-    """
-    rot_t = pose[..., :3, :3].transpose(-1, -2)
-    return make_pose(rot_t, -(rot_t @ pose[..., :3, 3:4])[..., 0])
 
 
 @dataclass
@@ -128,6 +108,19 @@ class ReferenceTrajectory:
         seg = torch.clamp(torch.searchsorted(self.times, t.detach().to(self.times.dtype), right=True) - 1, 0, len(self.times) - 2)
         span = (self.times[seg + 1] - self.times[seg])[..., None]
         return self.steps()[seg] / span, (self.translations[seg + 1] - self.translations[seg]) / span
+
+    def pose_and_rates(self, t: Float[np.ndarray, "num"]) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Eq. 1 and ``rates`` in numpy at times ``t`` (seconds since ``t0``; the LiDAR stage places every point with it).
+
+        Returns:
+            (``world_R_ref`` (num, 3, 3), ``world_t_ref`` (num, 3) metres, body angular rate rad/s, velocity m/s).
+        """
+        times, rotations, translations, steps = self.times.numpy(), self.rotations.numpy(), self.translations.numpy(), self.steps().numpy()
+        seg = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+        alpha, span = (t - times[seg]) / (times[seg + 1] - times[seg]), (times[seg + 1] - times[seg])[:, None]
+        rot = rotations[seg] @ roma.rotvec_to_rotmat(torch.from_numpy(alpha[:, None] * steps[seg])).numpy()
+        delta_p = translations[seg + 1] - translations[seg]
+        return rot, translations[seg] + alpha[:, None] * delta_p, steps[seg] / span, delta_p / span
 
 
 def interpolate_trajectory(

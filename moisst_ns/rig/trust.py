@@ -62,8 +62,8 @@ class SensorTrust:
     def to_json(self) -> dict:
         out: dict = {}
         if self.sigmas() is not None:
-            out["uncertainty"] = {"translation_m": [_json_sigma(v) for v in self.translation_m],
-                                  "rotation_deg": [_json_sigma(v) for v in self.rotation_deg], "time_offset_s": _json_sigma(self.time_offset_s)}
+            out["uncertainty"] = {"translation_m": [finite_or_none(v) for v in self.translation_m],
+                                  "rotation_deg": [finite_or_none(v) for v in self.rotation_deg], "time_offset_s": finite_or_none(self.time_offset_s)}
         if self.verdict is not None:
             out["verdict"] = self.verdict
             out["weak"] = list(self.weak)
@@ -71,8 +71,8 @@ class SensorTrust:
         return out
 
 
-def _json_sigma(value: float) -> Optional[float]:
-    """A sigma for JSON: ``null`` for an unconstrained (infinite) one."""
+def finite_or_none(value: float) -> Optional[float]:
+    """A number for JSON: ``null`` for an infinite or NaN one (an unconstrained or unmeasured sigma)."""
     return float(value) if math.isfinite(value) else None
 
 

@@ -12,11 +12,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from moisst_ns.runs import RunError
+from moisst_ns.runs import ERROR_KEYS, RunError
 
 BEGIN = "<!-- figures: generated from docs/figures.json by `moisst-figures`; do not edit by hand -->"
 END = "<!-- /figures -->"
-KEYS = ("translation_cm", "rotation_deg", "time_ms")
 
 
 def _num(x: float) -> str:
@@ -25,7 +24,7 @@ def _num(x: float) -> str:
 
 
 def _cell(err: Optional[Dict[str, float]]) -> str:
-    return " / ".join(_num(float(err[k])) for k in KEYS) if err else "-"
+    return " / ".join(_num(float(err[k])) for k in ERROR_KEYS) if err else "-"
 
 
 def _read_json(path: Path) -> Any:
@@ -52,8 +51,8 @@ def load_figures(path: Path) -> Dict[str, Any]:
         for name, entry in run["sensors"].items():
             for side in ("before", "after"):
                 err = entry.get(side) if isinstance(entry, dict) else None
-                if err is not None and not all(isinstance(err.get(k), (int, float)) for k in KEYS):
-                    raise RunError(f"{path}: runs[{i}].sensors.{name}.{side}: needs numbers {', '.join(KEYS)}")
+                if err is not None and not all(isinstance(err.get(k), (int, float)) for k in ERROR_KEYS):
+                    raise RunError(f"{path}: runs[{i}].sensors.{name}.{side}: needs numbers {', '.join(ERROR_KEYS)}")
     return data
 
 

@@ -13,24 +13,11 @@ import numpy as np
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.runs import RunError
-
-
-ESTIMATE_KEYS = ("x", "y", "z", "roll", "pitch", "yaw", "delta_ms")
-"""Per-sensor quantities of the summaries: metres, degrees (``pose_to_xyz_rpy``), milliseconds."""
+from moisst_ns.runs.history import ESTIMATE_COLUMNS
 
 
 def resolve_config_path(path: Path) -> Path:
-    """The config.yml of a run given either the file or its folder.
-
-    Args:
-        path: ``RUN/config.yml`` or ``RUN``.
-
-    Returns:
-        The config.yml path.
-
-    Raises:
-        RunError: nothing there.
-    """
+    """The config.yml of a run given either the file or its folder ``RUN``; ``RunError`` when there is none."""
     path = Path(path)
     if path.is_dir():
         path = path / "config.yml"
@@ -40,17 +27,8 @@ def resolve_config_path(path: Path) -> Path:
 
 
 def checkpoint_dir(config_path: Path) -> Path:
-    """The run's checkpoint folder, next to its config.yml (so a moved or copied run folder still opens).
-
-    Args:
-        config_path: the run's config.yml.
-
-    Returns:
-        ``RUN/nerfstudio_models``.
-
-    Raises:
-        RunError: the folder is missing or holds no ``step-*.ckpt``.
-    """
+    """``RUN/nerfstudio_models``, next to the run's config.yml (so a moved or copied run folder still opens);
+    ``RunError`` when it is missing or holds no ``step-*.ckpt``."""
     folder = config_path.parent / "nerfstudio_models"
     if not folder.is_dir() or not any(folder.glob("step-*.ckpt")):
         raise RunError(f"{config_path.parent}: no checkpoint ({folder.name}/step-*.ckpt missing); the run saved none or did not finish")
@@ -98,16 +76,8 @@ def dataset_of(config) -> Path:
 
 
 def check_output_dir(output_dir: Path, dataset: Path, create: bool = False) -> None:
-    """Refuse an output folder that is a file or lies inside the dataset folder (datasets are never written).
-
-    Args:
-        output_dir: the requested output folder.
-        dataset: the dataset folder.
-        create: create the folder once it passed.
-
-    Raises:
-        RunError: with the reason.
-    """
+    """Refuse (``RunError``) an output folder that is a file or lies inside the dataset folder (datasets are never
+    written); ``create``: create the folder once it passed."""
     if output_dir.exists() and not output_dir.is_dir():
         raise RunError(f"{output_dir}: --output-dir: is a file, not a folder")
     out, root = output_dir.resolve(), dataset.resolve()
@@ -157,15 +127,8 @@ def open_run(config_path: Path) -> Tuple[Any, Any, int, Rig]:
 
 
 def prior_calibration(data) -> Calibration:
-    """The dataset's priors (rig.json's), as a calibration: what "change from the prior" and "errors before" mean
-    to a user, also when the NeRF started from other priors (the LiDAR-first stage's estimate).
-
-    Args:
-        data: the run's ``RigData``.
-
-    Returns:
-        Its prior extrinsics and time offsets.
-    """
+    """The dataset's priors (rig.json's) of the run's ``RigData``, as a calibration: what "change from the prior" and
+    "errors before" mean to a user, also when the NeRF started from other priors (the LiDAR-first stage's estimate)."""
     if getattr(data, "dataset_priors", None) is not None:
         return data.dataset_priors
     names = data.sensor_names
@@ -191,7 +154,7 @@ def xyz_rpy_delta(pose: np.ndarray, time_offset: float) -> Dict[str, float]:
     from moisst_ns.rig.geometry import pose_to_xyz_rpy
 
     values = pose_to_xyz_rpy(torch.as_tensor(pose, dtype=torch.float64)).numpy()
-    out = {k: float(v) + 0.0 for k, v in zip(ESTIMATE_KEYS[:6], values)}  # + 0.0: no -0.0 in the tables
+    out = {k: float(v) + 0.0 for k, v in zip(ESTIMATE_COLUMNS[:6], values)}  # + 0.0: no -0.0 in the tables
     out["delta_ms"] = float(time_offset) * 1000.0 + 0.0
     return out
 
@@ -214,7 +177,7 @@ def change_from_prior(estimate: Dict[str, float], prior: Dict[str, float], est_p
 
     from moisst_ns.rig.geometry import calibration_errors
 
-    out = {k: estimate[k] - prior[k] for k in ESTIMATE_KEYS}
+    out = {k: estimate[k] - prior[k] for k in ESTIMATE_COLUMNS}
     for k in ("roll", "pitch", "yaw"):
         out[k] = (out[k] + 180.0) % 360.0 - 180.0
     trans, rot = calibration_errors(torch.as_tensor(est_pose, dtype=torch.float64), torch.as_tensor(prior_pose, dtype=torch.float64))
@@ -306,17 +269,17 @@ def outputs_dir(config_path: Path) -> Path:
     return run if (run / "calibration.json").is_file() else run.parent.parent
 
 
-def run_trust(config_path: Path, estimate: Calibration, tolerance: float = 1e-6) -> Calibration:
+def run_trust(config_path: Path, estimate: Calibration) -> Calibration:
     """The estimate with the trust fields the run wrote (``outputs_dir``'s calibration.json), and the priors it kept
     for sensors no better than them.
 
     The file is used only when every sensor it did not revert agrees with the checkpoint's estimate (same run, same
-    step); otherwise (a run trained further, or none) the estimate comes back unchanged.
+    step, every matrix entry and time offset within 1e-6); otherwise (a run trained further, or none) the estimate
+    comes back unchanged.
 
     Args:
         config_path: the run's config.yml.
         estimate: the checkpoint's calibration.
-        tolerance: largest difference of a matrix entry / time offset counted as equal.
 
     Returns:
         The calibration to export.
@@ -332,8 +295,8 @@ def run_trust(config_path: Path, estimate: Calibration, tolerance: float = 1e-6)
         return estimate
     for name in estimate.T_ref_sensor:
         kept = "prior is kept" in written.trust[name].reason if name in written.trust else False
-        same = (np.abs(np.asarray(written.T_ref_sensor[name]) - estimate.T_ref_sensor[name]).max() <= tolerance
-                and abs(written.time_offset[name] - estimate.time_offset[name]) <= tolerance)
+        same = (np.abs(np.asarray(written.T_ref_sensor[name]) - estimate.T_ref_sensor[name]).max() <= 1e-6
+                and abs(written.time_offset[name] - estimate.time_offset[name]) <= 1e-6)
         if not (same or kept):
             return estimate
     return written

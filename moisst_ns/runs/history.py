@@ -15,14 +15,14 @@ from typing import Dict, List
 
 import numpy as np
 
-from moisst_ns.runs import RunError
+from moisst_ns.runs import ERROR_KEYS, RunError
 
 
 ESTIMATE_COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw", "delta_ms")
 """Estimate columns of calibration_history.csv (metres, degrees, milliseconds)."""
 
 
-ERROR_COLUMNS = ("err_translation_cm", "err_rotation_deg", "err_time_ms")
+ERROR_COLUMNS = tuple(f"err_{k}" for k in ERROR_KEYS)
 """Error columns of calibration_history.csv (empty when the dataset has no ground truth)."""
 
 
@@ -152,8 +152,8 @@ def format_error_table(title: str, errors: Dict[str, Dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
-def still_moving(history: Path, last: int = 10, max_cm: float = 1.0, max_deg: float = 0.05, max_ms: float = 0.5) -> Dict[str, str]:
-    """Sensors whose last ``last`` logged estimates spread (std) more than the thresholds."""
+def still_moving(history: Path, last: int = 10) -> Dict[str, str]:
+    """Sensors whose last ``last`` logged estimates spread (std) more than 1 cm, 0.05 deg or 0.5 ms."""
     if not history.is_file():
         return {}
     try:
@@ -167,7 +167,7 @@ def still_moving(history: Path, last: int = 10, max_cm: float = 1.0, max_deg: fl
             continue
         std = tail.std(axis=0)
         cm, deg, ms = 100 * np.linalg.norm(std[:3]), float(np.linalg.norm(std[3:6])), float(std[6])
-        if cm > max_cm or deg > max_deg or ms > max_ms:
+        if cm > 1.0 or deg > 0.05 or ms > 0.5:
             out[name] = f"std {cm:.2f} cm, {deg:.3f} deg, {ms:.2f} ms"
     return out
 
@@ -209,7 +209,7 @@ def stage_history_rows(stage: dict, truth) -> List[tuple]:
         history = entry["history"]
         for k, h in enumerate(history):
             pose = np.asarray(h["T_ref_sensor"])
-            values = dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), pose_to_xyz_rpy(torch.from_numpy(pose)).tolist()))
+            values = dict(zip(ESTIMATE_COLUMNS[:6], pose_to_xyz_rpy(torch.from_numpy(pose)).tolist()))
             values.update(delta_ms=1000 * h["time_offset"], elapsed_s=h["elapsed_s"])
             if truth is not None:
                 est = Calibration(truth.reference_sensor, {name: pose}, {name: h["time_offset"]})

@@ -21,11 +21,12 @@ from __future__ import annotations
 import math
 from typing import Any, Dict, Iterable, List, Optional
 
+from moisst_ns.runs import ERROR_KEYS
+
 DEPTH_MISMATCH_M = 0.5
 """A median depth disagreement below this (metres) is never flagged (the scene's own error at the budgets here)."""
 DEPTH_MISMATCH_FRACTION = 0.1
 """... nor below this share of the median LiDAR depth."""
-ERROR_KEYS = ("translation_cm", "rotation_deg", "time_ms")
 
 
 def _worse(before: Dict[str, float], after: Dict[str, float]) -> List[str]:

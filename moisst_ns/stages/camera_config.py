@@ -28,34 +28,24 @@ class CameraRegistrationConfig:
     max_evaluations: int = 20
     """Residual evaluations per inner least-squares solve."""
     fine_iterations: int = 6
-    """At most this many outer iterations at the finest pyramid level. Each one draws its pairs at the current
-    estimate, and the minimum follows the draw a little (visibility, image-gradient weights, which pairs leave the
-    image), so along the flat along-track / time-offset valley the estimate creeps towards the minimum over several
-    iterations (320x240 plaza seed 2, side camera: 1.92, 1.15, 0.96, 0.95 cm; 1.22, 0.52, 0.47, 0.48 ms)."""
+    """At most this many outer iterations at the finest pyramid level: each draws its pairs at the current estimate, and
+    along the flat along-track / time-offset valley the estimate creeps towards the minimum over several (measured:
+    docs/lab/2026-11-23-camera-registration.md, "The finest level")."""
     stop_px: float = 0.1
     """A level ends once an outer iteration moves the projections by less than this (RMS, that level's pixels)..."""
     fine_stop_px: float = 0.02
-    """...the finest level once they move less than this (the creep above moves them 0.02-0.1 px per iteration: a
-    tenth of a pixel stopped it after the second iteration)."""
+    """...the finest level once they move less than this (the creep above moves them 0.02-0.1 px per iteration)."""
     huber: float = 0.5
     """Huber scale of the residuals, in standard deviations of the image's grey level."""
-    zbuffer_cell: int = 4
-    """Z-buffer block size, full-resolution pixels."""
-    occlusion_margin_m: float = 0.3
-    """A point counts as visible within this depth of the nearest map point in its block, metres..."""
-    occlusion_margin_fraction: float = 0.03
-    """...plus this fraction of its depth."""
     fine_points_per_frame: int = 5000
     """Map points sampled per camera frame at the finest pyramid level (0: ``points_per_frame``), there and in the
-    split halves. The finest level's minimum moves with the sample far more than its formal sigma says (the residuals
-    are image structure, not pixel noise): 320x240 street seed 0, side camera, four samples drawn at the truth, time
-    offset spread 0.34 ms and along-track lever arm 2.9 mm with 600 points, 0.08 ms and 0.6 mm with 5000, at about the
-    same solve time (the z-buffers dominate)."""
+    split halves: the finest level's minimum moves with the sample far more than its formal sigma says (measured:
+    docs/lab/2026-11-23-camera-registration.md, "The finest level")."""
     own_baseline: float = 1.5
     """A camera's own partner frame is the first at least this far (driving distance) from the frame, metres."""
     fine_baseline: float = 3.0
     """The same at the finest pyramid level (0: ``own_baseline``): more parallax sharpens the along-track terms
-    (measured, stages alone, 320x240: side camera's offset 1.08/0.98/0.28 ms -> 0.31/0.45/0.70 on three rigs)."""
+    (measured: docs/lab/2026-11-23-camera-registration.md, "Farther own partners")."""
     held_back_points: int = 300
     """Map points per frame of the held-back check (estimate vs prior), drawn afresh after the fit."""
     max_translation: float = 2.0
@@ -74,19 +64,16 @@ class CameraRegistrationConfig:
     max_cost_ratio: float = 5.0
     """A fit whose final cost is more than this many times the reference camera's own cost (its frames paired with
     each other at their known poses: the scene's and images' own inconsistency) is a wrong minimum and keeps the prior
-    (measured: 1.1-2.7x at the truth with a LiDAR map, 4.1x with a feature map; 6-7x for the wrong minima seen)."""
+    (measured ratios: docs/lab/2026-11-23-camera-registration.md, "Cameras against the LiDAR map")."""
     max_split_half: float = 2.0
     """A fit whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms) on any parameter is
-    not determined by the data and keeps the prior (measured on 96x72 rigs: 0.3-10 ms and 1-6 cm for fits that were
-    right, 58-63 cm and 63 ms for one that was 1.5 m off)."""
+    not determined by the data and keeps the prior (measured: docs/lab/2026-11-23-camera-registration.md)."""
     min_significance: float = 1.0
     """A fit whose held-back cost rises by less than this many times three standard errors over the frames when one
     correction is stepped by a typical prior error (10 cm, 1 deg, 10 ms; ``typical_error_significance``) keeps the
     prior, and ``moisst-calibrate`` holds it there (the NeRF sees the same view): that view does not determine the
-    correction, so wherever the fit ended along it is not the data's answer (measured at the truth, 96x72 rigs: 0.1-0.9
-    on some correction for the side cameras accepted 40 and 131 cm off, >= 1.3 on all for the one accepted within
-    2 cm, >= 1.5 for every forward-right camera; >= 3 for both cameras at 320x240; with 1, every wrong acceptance on
-    twelve 96x72 rigs kept its prior: docs/method.md). 0 switches the test off."""
+    correction, so wherever the fit ended along it is not the data's answer (measured: docs/lab/2026-11-23-camera-registration.md,
+    "The typical-error test"). 0 switches the test off."""
     feature_start: bool = True
     """Start each camera from its pose fitted to SIFT features matched to the reference camera's map-anchored
     keypoints (``feature_start``) where that fit holds, else from its prior (a side camera the reference never
@@ -94,16 +81,6 @@ class CameraRegistrationConfig:
     split_half: bool = True
     """Also solve the two halves of the drive and report sigma as at least their spread (``split_half_spread``; two
     more solves at full resolution)."""
-    resolution_spread: bool = True
-    """Report sigma as at least half the change of the estimate between the two finest pyramid levels
-    (``camera_guards.resolution_spread``: the bias a resolution leaves, which neither the formal sigma nor the halves
-    see; no extra solve). Measured on the quick benchmark's 96x72 runs and a 320x240 run: accepted cameras' parameters
-    within 3 sigma 40 of 78 without it, 72 of 78 with it."""
-    convergence_tail: bool = True
-    """Report sigma as at least the distance the descent may still have had to go (``camera_guards.convergence_tail``:
-    Aitken's delta^2 from the last three outer iterations; no extra solve). Measured on the quick benchmark's runs and a
-    320x240 run: accepted cameras' parameters within 3 sigma 72 -> 73 of 78, and a time offset 5.2x its sigma from the
-    truth brought to 4.3x."""
     seed: int = 0
     """Seed of the point samples."""
     estimate_readout: bool = False

@@ -19,14 +19,12 @@ from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.observability import JACOBIAN_ORDER, TEST_STEPS, PARAMETERS as REPORT_ORDER
+from moisst_ns.stages.observability import JACOBIAN_ORDER, TYPICAL_ERROR, PARAMETERS as REPORT_ORDER  # noqa: F401 (TYPICAL_ERROR re-exported)
 from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
 
 PARAMETERS = tuple(REPORT_ORDER[i] for i in JACOBIAN_ORDER)  # roll pitch yaw x y z time_offset (the order is its own inverse)
 """The corrections in solver order (rotation about the camera's own axes, lever arm in the reference frame, delta);
 with ``estimate_readout`` an 8th, the readout time's correction (seconds)."""
-TYPICAL_ERROR = np.asarray(TEST_STEPS)[list(JACOBIAN_ORDER)]
-"""``observability.TEST_STEPS`` (10 cm, 1 deg, 10 ms) in solver order (rad, m, s)."""
 SCALE = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005, 0.005]
 """The solver's ``x_scale`` per correction (rad, m, s, and s for the readout)."""
 
@@ -153,7 +151,9 @@ def split_half_spread(problem: Registration, theta: np.ndarray, active: np.ndarr
 
     Each half (the camera's frames split in time) is solved from ``theta`` on fresh pairs. For two independent
     halves ``|a - b| / 2`` estimates the standard deviation of the whole drive's estimate, and unlike the formal sigma
-    it also sees what changes along the drive (a bias of one stretch of road, of one kind of motion).
+    it also sees what changes along the drive or what the drive leaves undetermined (a bias of one stretch of road, of
+    one kind of motion; a lever arm a short, nearly straight drive hardly shows). The LiDAR-first stage's
+    ``lidar_first.split_half_spread`` is the same test.
 
     Returns:
         Per correction (rad, rad, rad, m, m, m, s); inf where a half has fewer than 50 pairs, 0 for inactive ones.

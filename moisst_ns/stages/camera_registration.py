@@ -1,24 +1,9 @@
 """Cameras against the calibrated LiDAR map: each camera's extrinsic and time offset from photometric consistency
-over LiDAR-measured, metric geometry (no NeRF).
-
-After the LiDAR-first stage the scans, placed by paper eq. 1-2 at the calibrated LiDAR extrinsics, are a metric map
-of the static scene (``lidar_map.lidar_map``). A map point ``x`` seen by camera ``c`` in its frame ``k`` (own-clock
-stamp ``s_k``) projects to ``u = pi_c(world_T_c(s_k)^-1 x)`` with ``world_T_c(s) = T_r(s + delta_c) @ ref_T_c``
-(eq. 2, the same pose every NeRF ray of that camera is generated from, eq. 10-12). Its grey level there must equal
-its grey level in the reference camera's images (poses known) and in the camera's own frames some metres of
-driving away (poses depending on the same unknowns: this is what registers a camera that the reference never
-overlaps). Residuals ``I_{c,k}(u) - I_B(u_B)`` over such pairs of observations, on images standardised per frame,
-robust (Huber), solved for the 7 unknowns of eq. 12 (``R = R_prior Exp(w)``, ``t = t_prior + v``,
-``delta = delta_prior + d``) with ``scipy.optimize.least_squares``. The Jacobian is the image gradient times the
-projection's derivative (forward-mode autodiff, ``torch.func.jacfwd``, through eq. 1-2). Coarse to fine over an
-image pyramid (as INF: 8 -> 4 -> 2 -> 1) for the basin; occlusions by a z-buffer of the map in every image. This is
-direct image alignment against known depth, as in direct visual odometry, with the LiDAR giving the depth.
-
-A camera whose held-back photometric cost (pairs not used in the fit) is not lower at the estimate than at its
-prior keeps its prior (``CameraResult.kept_prior``). A rolling-shutter camera (rig.json's ``readout_time``) sees each
-map point from the pose at its row's time, ``T_r(s_k + row_time(v) + delta_c) @ ref_T_c`` (``photometric.CameraModel``),
-the reference camera's frames alike; ``estimate_readout`` fits the readout too, an 8th unknown at the two finest levels.
-Nothing here imports nerfstudio.
+over LiDAR-measured, metric geometry (no NeRF): grey levels of map points in a camera's frames against the reference
+camera's and its own frames some metres away, robust (Huber) least squares on the 7 corrections of eq. 12, coarse to
+fine over an image pyramid, occlusions by a z-buffer, rolling-shutter rows included (``photometric``), each fit
+guarded before it replaces the prior (``camera_guards``). docs/method.md, "Cameras against the map" and "Guards", has
+the formulation and the measurements. Nothing here imports nerfstudio.
 """
 
 from __future__ import annotations
@@ -40,6 +25,7 @@ from moisst_ns.stages.lidar_map import CameraStageError, NoOverlapError, Pinhole
 from moisst_ns.stages.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, convergence_tail, held_back_check, points_per_frame, reference_cost,
                                             resolution_spread, solve, split_half_spread, typical_error_significance)
 from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, robust_cost
+from moisst_ns.stages.observability import huber_weights
 from moisst_ns.stages.uncertainty_math import least_squares_sigma
 
 
@@ -93,9 +79,9 @@ class CameraResult:
     blind: List[str] = field(default_factory=list)
     """The corrections whose significance is under ``min_significance`` (the camera then keeps its prior)."""
     sigma_resolution: List[float] = field(default_factory=list)
-    """The resolution part of ``sigma`` (``camera_guards.resolution_spread``; zeros when ``resolution_spread`` is off)."""
+    """The resolution part of ``sigma`` (``camera_guards.resolution_spread``)."""
     sigma_convergence: List[float] = field(default_factory=list)
-    """The convergence part of ``sigma`` (``camera_guards.convergence_tail``; zeros when ``convergence_tail`` is off)."""
+    """The convergence part of ``sigma`` (``camera_guards.convergence_tail``)."""
     held_there: bool = False
     """The prior is kept and ``moisst-calibrate`` holds it there through the NeRF too (``note`` says why): a ``blind``
     camera, or one that shares no view with the reference camera of a rig without a LiDAR."""
@@ -172,12 +158,12 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
     finest = min(problem.camera.levels)
     formal = np.zeros(len(active))
     if active.any():
-        weights = np.sqrt(np.minimum(1.0, config.huber / np.maximum(np.abs(res[ok]), 1e-12)))
+        weights = np.sqrt(huber_weights(res[ok], config.huber))
         formal[active] = least_squares_sigma(jac[ok][:, active] * weights[:, None], res[ok] * weights, pairs.frame_a[ok]).sigma
     spread = split_half_spread(problem, theta, active, finest, config) if config.split_half and active.any() else np.zeros(len(active))
-    resolution = resolution_spread(level_end) if config.resolution_spread else np.zeros(len(active))
-    tail = convergence_tail([h["correction"] for h in history]) if config.convergence_tail else np.zeros(len(active))
-    if config.estimate_readout and config.convergence_tail:  # the readout's tail from the levels that fit it
+    resolution = resolution_spread(level_end)
+    tail = convergence_tail([h["correction"] for h in history])
+    if config.estimate_readout:  # the readout's tail from the levels that fit it
         tail[7] = convergence_tail([h["correction"] for h in history if h["level"] in sorted(problem.camera.levels)[:READOUT_LEVELS]])[7]
     cost_pri, cost_est, better = held_back_check(problem, theta, finest, config)
     at_bound = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (np.abs(theta[:7]) >= 0.999 * bounds(config)))]
@@ -241,21 +227,13 @@ def _started(initial: Optional[FeatureStart]) -> str:
 def register_camera(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None] = print,
                     floor_cost: Optional[float] = None, initial: Optional[FeatureStart] = None) -> CameraResult:
     """Coarse-to-fine photometric registration of one camera against the map (see the module docstring), then its
-    guards; ``floor_cost``: ``reference_cost`` of the rig (None: no wrong-minimum test); ``initial``: the feature
-    start (None or without ``theta``: start from the prior)."""
+    guards; ``floor_cost``: ``reference_cost`` of the rig (None: no wrong-minimum test). With a feature start
+    (``initial.theta``) two descents, from it and from the prior (either can end in a wrong minimum, measured on 96x72
+    rigs): the one with the lower final cost is guarded first, the other only if the guards keep the prior for it."""
     start = time.perf_counter()
-    theta0 = initial.theta if initial is not None and initial.theta is not None else np.zeros(len(_active(config)))
-    descent = _descend(problem, config, log, theta0)
-    return _guarded(problem, config, floor_cost, descent, _started(initial), time.perf_counter() - start)
-
-
-def _best_start(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None], floor_cost: Optional[float],
-                initial: Optional[FeatureStart]) -> CameraResult:
-    """Two descents, from the feature start and from the prior (either can end in a wrong minimum, measured on 96x72
-    rigs); the one with the lower final cost is guarded first, the other only if the guards keep the prior for it."""
     if initial is None or initial.theta is None:
-        return register_camera(problem, config, log, floor_cost, initial)
-    start = time.perf_counter()
+        return _guarded(problem, config, floor_cost, _descend(problem, config, log, np.zeros(len(_active(config)))), _started(initial),
+                        time.perf_counter() - start)
     descents = [(_descend(problem, config, log, initial.theta), _started(initial)), (_descend(problem, config, log, np.zeros(len(_active(config)))), "prior")]
     costs = [d[1][-1]["cost"] for d, _ in descents]
     order = np.argsort(costs, kind="stable")
@@ -350,11 +328,11 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             if initial.theta is None:
                 log(f"[camera-registration] {name}: {initial.note}")
         try:
-            results[name] = _best_start(problem, config, log, floor, initial)
+            results[name] = register_camera(problem, config, log, floor, initial)
             if results[name].readout_note.startswith(UNDETERMINED):  # refitted with rig.json's readout, which it keeps
                 log(f"[camera-registration] {name}: {results[name].readout_note}; refitting with it")
                 again = Registration(traj, world, problem.camera, reference, calibration, config)
-                results[name] = replace(_best_start(again, replace(config, estimate_readout=False), log, floor, initial),
+                results[name] = replace(register_camera(again, replace(config, estimate_readout=False), log, floor, initial),
                                         **{k: getattr(results[name], k) for k in ("readout_estimate", "readout_sigma", "readout_note")})
         except NoOverlapError as err:
             results[name] = _prior_kept(name, calibration, str(err), rig)

@@ -11,16 +11,13 @@ import numpy as np
 
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
+from moisst_ns.rig.trust import finite_or_none
 from moisst_ns.stages.camera_registration import CameraRegistrationConfig, CameraStageResult
 from moisst_ns.stages.lidar_report import truth_table, write_stage_files
 from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS
 
 REPORT_JSON = "camera_registration.json"
 REPORT_MD = "camera_registration.md"
-
-
-def _finite(value: float) -> Optional[float]:
-    return float(value) if np.isfinite(value) else None
 
 
 def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, start: Calibration,
@@ -40,17 +37,17 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
     sensors = {}
     for name, r in result.cameras.items():
         sigma = [float(r.sigma[j]) for j in JACOBIAN_ORDER]
-        parts = {f"sigma_{k}": [_finite(v[j]) for j in JACOBIAN_ORDER] for k, v in (("formal", r.sigma_formal), ("split_half", r.sigma_split),
+        parts = {f"sigma_{k}": [finite_or_none(v[j]) for j in JACOBIAN_ORDER] for k, v in (("formal", r.sigma_formal), ("split_half", r.sigma_split),
                                                                                    ("resolution", r.sigma_resolution), ("convergence", r.sigma_convergence)) if v}
         entry = {"T_ref_sensor": np.asarray(r.estimate).tolist(), "time_offset": r.time_offset, "prior_T_ref_sensor": np.asarray(r.prior).tolist(),
-                 "prior_time_offset": r.prior_offset, "sigma": [s if np.isfinite(s) else None for s in sigma],
+                 "prior_time_offset": r.prior_offset, "sigma": [finite_or_none(s) for s in sigma],
                  "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step],
-                 "loss_estimate": _finite(r.cost_estimate), "loss_prior": _finite(r.cost_prior), "kept_prior": r.kept_prior,
+                 "loss_estimate": finite_or_none(r.cost_estimate), "loss_prior": finite_or_none(r.cost_prior), "kept_prior": r.kept_prior,
                  "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history,
-                 "typical_error_significance": [_finite(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None,
+                 "typical_error_significance": [finite_or_none(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None,
                  "blind": [p for p in PARAMETERS if p in r.blind],
                  "held_there": r.held_there, "readout_time": r.readout_time, "prior_readout_time": r.readout_prior,
-                 **({"readout_estimate": r.readout_estimate, "readout_sigma": _finite(r.readout_sigma), "readout_note": r.readout_note}
+                 **({"readout_estimate": r.readout_estimate, "readout_sigma": finite_or_none(r.readout_sigma), "readout_note": r.readout_note}
                     if r.readout_estimate is not None else {}),
                  **parts}
         if truth:

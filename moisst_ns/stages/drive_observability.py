@@ -1,30 +1,9 @@
 """Which of a sensor's 7 calibration parameters the drive itself can separate, before any training.
 
-A sensor's frames are taken at ``world_T_i(t) = Traj(t + delta) . T_ref_i`` (rig format eq. 2). Whatever the
-sensor measures, calibration can only see a parameter through what it does to that pose trajectory, so the drive
-bounds what any method can recover. Two models of what a sensor's data pins down:
-
-* ``absolute`` (cameras in the NeRF): the sensor is registered against a scene anchored by the reference sensor, so
-  its *world pose* at every frame is what is measured. Residuals: the pose change of every frame, position in metres
-  and orientation as the displacement (metres) of a point ``scene_depth_m`` away. Under a constant body twist
-  ``Traj(t + delta) = Traj(t) . Exp(xi delta)``: a time offset is then exactly a fixed extrinsic change (a straight
-  constant-speed drive trades delta against the lever arm along the direction of travel, a constant-rate circle
-  also against the rotation about the turn axis).
-* ``relative`` (LiDARs in the LiDAR-first stage: scans registered to each other): only the sensor's *motion*
-  between its frames is seen (hand-eye calibration). Residuals: the change of the relative pose between frame
-  pairs up to ``max_lag_s`` apart. A lever arm shows only through rotations about the other axes (a flat drive
-  leaves the vertical weak), a time offset only through changes of the twist.
-
-For each parameter the *marginal* information (Schur complement of ``J^T J``: the 6 others re-fit to absorb it,
-``stages.observability.marginal_information``) gives the RMS effect of a typical prior error (``TEST_STEPS``: 10 cm,
-1 deg, 10 ms), reported with ``separability = sqrt(marginal / own)``. Which parameters are *weak* comes from the
-eigen-directions of the information scaled by the test steps (``weak_parameters``): a combination of typical errors
-is weak when it changes the poses by less than ``min_effect_m`` (2 mm: a fraction of a LiDAR's range noise, a pixel
-at 10 m for a 320-pixel camera) or by less than a tenth of what its largest member does alone (its uncertainty is
-inflated at least tenfold, the "10x" of the uncertainty targets); every parameter with a share above ``SHARE`` in
-such a combination is weak. The reason names the drive's excitation and the partners.
-
-Pure numpy/torch/roma: nothing here imports nerfstudio.
+The Jacobian of the sensor's frame poses ``Traj(t + delta) . T_ref_i`` (rig format eq. 2) in its 7 parameters gives the
+information; ``absolute`` (world poses: cameras) or ``relative`` (poses between frames: LiDARs, hand-eye) models, weak
+parameters from the eigen-directions scaled by ``TEST_STEPS`` (``weak_parameters``). docs/uncertainty.md, section 1,
+has the models, the rules and the measurements. Pure numpy/torch/roma: nothing here imports nerfstudio.
 """
 
 from __future__ import annotations
@@ -44,19 +23,14 @@ FD_STEPS = (1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4)
 """Central finite-difference steps per parameter: metres, radians, seconds."""
 
 
-@dataclass
-class DriveObservabilityConfig:
-    """Settings of the drive observability analysis."""
-
-    scene_depth_m: float = 10.0
-    """Distance (m) at which an orientation change is measured as a displacement (a camera sees its rotation
-    through points at scene depth; 1 deg there is 17 cm)."""
-    max_lag_s: float = 2.0
-    """``relative`` model: frame pairs up to this far apart (a scan-to-map window), seconds."""
-    min_effect_m: float = MIN_EFFECT
-    """A parameter is weak when its test step changes the residuals by less than this RMS, metres."""
-    min_separability: float = 0.1
-    """A parameter is weak when re-fitting the others leaves less than this fraction of its own effect."""
+SCENE_DEPTH_M = 10.0
+"""Distance (m) at which an orientation change is measured as a displacement (a camera sees its rotation through points
+at scene depth; 1 deg there is 17 cm)."""
+MAX_LAG_S = 2.0
+"""``relative`` model: frame pairs up to this far apart (a scan-to-map window), seconds."""
+MIN_SEPARABILITY = 0.1
+"""A parameter is weak when re-fitting the others leaves less than this fraction of its own effect (with
+``observability.MIN_EFFECT``: weak when its test step changes the residuals by less than that RMS, metres)."""
 
 
 @dataclass
@@ -168,18 +142,17 @@ SHARE = 0.3
 """A parameter takes part in a weak combination when its share of the (test-step scaled, unit) direction exceeds this."""
 
 
-def weak_parameters(information: Float[np.ndarray, "7 7"], config: DriveObservabilityConfig) -> set:
+def weak_parameters(information: Float[np.ndarray, "7 7"]) -> set:
     """Indices of the parameters that take a material part (``SHARE``) in a weak combination.
 
     The information is scaled by ``TEST_STEPS`` (``D H D``: a unit vector is a combination of typical prior errors);
-    an eigen-direction is weak when a test-sized error along it changes the poses by less than ``min_effect_m`` RMS
-    or by less than ``min_separability`` times the effect of its largest member alone. Marginal information alone
+    an eigen-direction is weak when a test-sized error along it changes the poses by less than ``MIN_EFFECT`` RMS
+    or by less than ``MIN_SEPARABILITY`` times the effect of its largest member alone. Marginal information alone
     would also flag a parameter that plays a tiny part in a degenerate combination (a camera's vertical lever arm
     when the velocity has a small vertical component in its frame).
 
     Args:
         information: per-pose ``J^T J`` in ``PARAMETERS`` order (metres^2 per unit^2).
-        config: thresholds.
 
     Returns:
         Set of parameter indices.
@@ -192,9 +165,9 @@ def weak_parameters(information: Float[np.ndarray, "7 7"], config: DriveObservab
     for value, vector in zip(values, vectors.T):
         effect = np.sqrt(max(value, 0.0))
         members = np.nonzero(np.abs(vector) > SHARE)[0]
-        if len(members) and (effect < config.min_effect_m or effect < config.min_separability * own[members].max()):
+        if len(members) and (effect < MIN_EFFECT or effect < MIN_SEPARABILITY * own[members].max()):
             out.update(int(i) for i in members)
-    out.update(int(i) for i in np.nonzero(own < config.min_effect_m)[0])
+    out.update(int(i) for i in np.nonzero(own < MIN_EFFECT)[0])
     return out
 
 
@@ -211,7 +184,7 @@ def drive_excitation(traj: ReferenceTrajectory, times: Float[np.ndarray, "num"])
 
 def analyse_drive(
     traj: ReferenceTrajectory, times: Float[np.ndarray, "num"], extrinsic: Float[np.ndarray, "4 4"], sensor: str,
-    model: Literal["absolute", "relative"], config: DriveObservabilityConfig = DriveObservabilityConfig(),
+    model: Literal["absolute", "relative"],
 ) -> DriveObservability:
     """Observability of one sensor's 7 parameters from the drive alone.
 
@@ -221,19 +194,18 @@ def analyse_drive(
         extrinsic: prior ``T_ref_sensor``.
         sensor: its name (for the report).
         model: ``absolute`` or ``relative`` (module docstring).
-        config: thresholds.
 
     Returns:
         One ``DriveDof`` per parameter, in ``PARAMETERS`` order.
     """
     times = np.asarray(times, dtype=np.float64)
-    pairs = frame_pairs(times, config.max_lag_s) if model == "relative" else np.zeros((0, 2), dtype=np.int64)
-    jac = pose_jacobian(traj, times, extrinsic, model, pairs, config.scene_depth_m)
+    pairs = frame_pairs(times, MAX_LAG_S) if model == "relative" else np.zeros((0, 2), dtype=np.int64)
+    jac = pose_jacobian(traj, times, extrinsic, model, pairs, SCENE_DEPTH_M)
     information = jac.T @ jac / max(len(jac) // 6, 1)  # per pose: RMS over poses
     marginal = marginal_information(information)
     exc = drive_excitation(traj, times)
     out = DriveObservability(sensor, model)
-    weak_set = weak_parameters(information, config)
+    weak_set = weak_parameters(information)
     for i, (name, step) in enumerate(zip(PARAMETERS, TEST_STEPS)):
         own = float(information[i, i])
         effect = float(np.sqrt(marginal[i]) * step)
@@ -245,13 +217,12 @@ def analyse_drive(
     return out
 
 
-def analyse_rig_drive(rig, lidar_first: bool = True, config: DriveObservabilityConfig = DriveObservabilityConfig()) -> List[DriveObservability]:
+def analyse_rig_drive(rig, lidar_first: bool = True) -> List[DriveObservability]:
     """``analyse_drive`` for every non-reference sensor of a loaded rig, at its priors.
 
     Args:
         rig: a ``moisst_ns.rig.format.Rig``.
         lidar_first: LiDARs are calibrated by the LiDAR-first stage (``relative`` model); else like cameras.
-        config: thresholds.
 
     Returns:
         One result per non-reference sensor, in rig order.
@@ -266,7 +237,7 @@ def analyse_rig_drive(rig, lidar_first: bool = True, config: DriveObservabilityC
         if len(times) < 2:
             times = np.concatenate([times, times + 0.1])
         model = "relative" if (spec.type == "lidar" and lidar_first) else "absolute"
-        out.append(analyse_drive(traj, times, spec.T_ref_sensor, name, model, config))
+        out.append(analyse_drive(traj, times, spec.T_ref_sensor, name, model))
     return out
 
 

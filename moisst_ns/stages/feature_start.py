@@ -26,6 +26,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
+from moisst_ns.stages.camera_guards import SCALE
 from moisst_ns.stages.camera_map import _camera_matrix, _distortion
 from moisst_ns.stages.lidar_map import PinholeModel, project, visible, world_to_camera
 from moisst_ns.stages.photometric import CameraFrames, CameraModel
@@ -82,7 +83,7 @@ def _sift(image: np.ndarray, features: int) -> Tuple[np.ndarray, Optional[np.nda
 
 
 def reference_landmarks(world: Float[np.ndarray, "num 3"], pose: Float[np.ndarray, "4 4"], image: np.ndarray, model: PinholeModel,
-                        features: int, max_depth: float = 40.0, max_depth_spread: float = 0.05,
+                        features: int, max_depth_spread: float = 0.05,
                         projected: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Tuple[Float[np.ndarray, "k 3"], Optional[np.ndarray]]:
     """The reference frame's SIFT keypoints that land on the map, as world points with their descriptors.
 
@@ -92,7 +93,6 @@ def reference_landmarks(world: Float[np.ndarray, "num 3"], pose: Float[np.ndarra
         image: the frame (full resolution).
         model: intrinsics (full resolution).
         features: SIFT features per frame.
-        max_depth: map points farther than this are not used, metres.
         max_depth_spread: a keypoint whose 3x3 pixels hold map points whose depths differ by more than this fraction
             sits on a depth edge (its 3D point is ambiguous) and is dropped.
         projected: the map's pixels and depths in this frame when already known (a rolling-shutter camera: each point
@@ -110,7 +110,7 @@ def reference_landmarks(world: Float[np.ndarray, "num 3"], pose: Float[np.ndarra
         uv, depth = (a.numpy() for a in project(model, world_to_camera(pose_t, torch.from_numpy(world))))
     else:
         uv, depth = projected
-    seen = np.flatnonzero(visible(uv, depth, model, 4, 0.3, 0.03, max_depth))
+    seen = np.flatnonzero(visible(uv, depth, model))
     w, h = model.width, model.height
     nearest = np.full(w * h, -1, dtype=np.int64)
     order = seen[np.argsort(-depth[seen])]  # far to near: the nearest point of a pixel is written last
@@ -205,7 +205,6 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
     start[3:6] = ref_T_c[:3, 3] - prior[:3, 3]
     start = np.clip(start, -bounds, bounds)
     points, frames, observed = points[inl], frames[inl], observed[inl]
-    scale = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005]
 
     def residuals(theta):
         return (model.pixels(theta, camera.model, points, frames, jacobian=False)[0] - observed).ravel()
@@ -213,7 +212,7 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
     def jacobian(theta):
         return model.pixels(theta, camera.model, points, frames, jacobian=True)[1].reshape(-1, 7)
 
-    fit = least_squares(residuals, start, jac=jacobian, method="trf", loss="soft_l1", f_scale=1.0, x_scale=scale,
+    fit = least_squares(residuals, start, jac=jacobian, method="trf", loss="soft_l1", f_scale=1.0, x_scale=SCALE[:7],
                         bounds=(-bounds, bounds), max_nfev=50)
     err = np.linalg.norm(fit.fun.reshape(-1, 2), axis=1)
     rms = float(np.sqrt(np.mean(np.square(err[err < 3 * threshold])))) if np.any(err < 3 * threshold) else float("inf")

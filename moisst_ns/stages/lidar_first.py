@@ -1,22 +1,10 @@
 """LiDAR first: calibrate each LiDAR against the reference trajectory from its own scans (no image, no NeRF).
 
-Every scan point ``p`` (LiDAR frame) fired at own-clock time ``t`` is placed in the world by paper eq. 1-2,
-``x = T_r(t + delta_L) @ ref_T_L @ p``, per point, so raw sweeps are de-skewed by the same interpolated trajectory
-(KITTI-360-style motion-compensated scans have no per-point times and are placed at their stamp). The scans of a
-static world agree with each other only at the true ``ref_T_L`` and ``delta_L``: a rotation error smears the map in
-proportion to the distance driven, a time error in proportion to speed changes, a lever-arm error in proportion to
-heading changes (map "crispness": Maddern et al. ICRA 2012, Sheehan et al. IJRR 2012, ethz-asl/lidar_align).
-
-Formulation (ICP-like, ``lidar_scans.consistency_residuals``): point-to-plane residuals ``n_b . (x_a - y_b)`` between
-sampled points of scan ``a`` and their nearest neighbours in scan ``b``, for scan pairs spread over baselines of
-0.5 m to ``max_baseline`` of driving; normals and planarity from each scan's own full-density neighbourhoods (open3d
-covariances). Outer iterations re-place every scan, recompute correspondences within a radius that shrinks
-coarse-to-fine and admit longer baselines as the estimate improves; each inner problem is a robust (Huber)
-Gauss-Newton/trust-region solve of the 7 parameters (``scipy.optimize.least_squares`` with the analytic Jacobian
-of ``placement_jacobian``). Unknowns: ``R = R_c Exp(w)`` (rotation about the LiDAR's own axes), ``t = t_c + v``
-(reference frame, metres), ``delta = delta_c + d`` (seconds), the same parameterisation as paper eq. 12.
-
-Nothing here imports nerfstudio.
+Every scan point is placed by paper eq. 1-2 at its own firing time (``lidar_geometry``); point-to-plane residuals
+between scans over growing baselines (``lidar_scans``) are solved coarse to fine for the 7 parameters of eq. 12 (robust
+trust-region Gauss-Newton, analytic Jacobian), then checked (split-half spread, release check) and, where the drive's
+halves hold parameters, placed by the shared view (``lidar_view``). docs/lidar-first.md has the formulation, the rules
+and the measurements. Nothing here imports nerfstudio.
 """
 
 from __future__ import annotations
@@ -26,16 +14,19 @@ from dataclasses import dataclass, replace
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+from jaxtyping import Float, Int
 from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration, Rig
-from moisst_ns.stages.lidar_checks import release_check, split_half_spread
-from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, prior_residuals
+from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.rig.trust import parameter_difference
+from moisst_ns.stages.lidar_geometry import Extrinsic, prior_residuals
 from moisst_ns.stages.lidar_map import CameraStageError
 from moisst_ns.stages.lidar_scans import (  # noqa: F401 (Correspondences, ScanSet, load_scans, scan_pairs: the stage's data, imported from here too)
     Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, consistency_residuals, find_correspondences, load_scans, scan_pairs)
 from moisst_ns.stages.lidar_view import SharedView, ViewSearch, search_held
-from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS, Observability, analyse_observability, huber_weights
+from moisst_ns.stages.observability import (JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, TYPICAL_ERROR, UNITS, Observability, analyse_observability,
+                                            huber_weights)
 
 
 @dataclass
@@ -63,7 +54,7 @@ class LidarResult:
     """``view_search``: the columns searched, those placed, their sigma and the notes (``lidar_view.ViewSearch``)."""
 
 
-def _fit(traj: Trajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndarray, start: Extrinsic, prior: Extrinsic, free: np.ndarray,
+def _fit(traj: ReferenceTrajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndarray, start: Extrinsic, prior: Extrinsic, free: np.ndarray,
          config: LidarFirstConfig, log: Callable[[str], None], where: str) -> Tuple[Extrinsic, List[Dict[str, float]]]:
     """Coarse-to-fine outer iterations of the parameters ``free`` (Jacobian order: rotation, translation, delta) from
     ``start``; ``prior`` anchors the bound on delta, ``where`` (``file: sensors.NAME``) names the sensor in errors.
@@ -147,7 +138,7 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     """
     start = time.perf_counter()
     spec = rig.sensors[sensor]
-    traj = Trajectory.from_rig(rig)
+    traj = ReferenceTrajectory.of(rig)
     scans = load_scans(rig, sensor, traj, config, log)
     prior = Extrinsic(spec.T_ref_sensor[:3, :3].copy(), spec.T_ref_sensor[:3, 3].copy(), float(spec.time_offset))
     pairs, baselines = scan_pairs(traj, scans, prior.time_offset, config)
@@ -190,7 +181,7 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
             raise LidarFirstError(str(err)) from None
         ext, searched = _place_by_view(sensor, traj, scans, pairs, baselines, ext, prior, free, held_apart, view, observability, split, fine, log, where)
     held = None
-    if len(free) < 7 and config.release_check:
+    if len(free) < 7:
         released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where)
         held = release_check(ext, released, free, observability, expected=held_apart)
         if searched is not None:  # a motion-only release cannot measure what the view placed
@@ -201,14 +192,13 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
                        time.perf_counter() - start, held, split, None if searched is None else searched.to_json())
 
 
-def _place_by_view(sensor: str, traj: Trajectory, scans: ScanSet, pairs, baselines, ext: Extrinsic, prior: Extrinsic, free, held: List[int],
+def _place_by_view(sensor: str, traj: ReferenceTrajectory, scans: ScanSet, pairs, baselines, ext: Extrinsic, prior: Extrinsic, free, held: List[int],
                    view: SharedView, observability: Observability, split: Optional[List[float]], fine: LidarFirstConfig,
                    log: Callable[[str], None], where: str) -> Tuple[Extrinsic, ViewSearch]:
     """``view_search``: the held rotations and lever-arm components searched on the shared view (``search_held``); the
     placed ones leave the weak list with the search's sigma (into ``split`` too), the free parameters are fitted again."""
     shared = view.at(traj, ext, scans, pairs)
-    typical = np.array(TEST_STEPS)[np.argsort(JACOBIAN_ORDER)]  # per Jacobian column
-    found = search_held(traj, ext, scans, shared, pairs, sorted(j for j in held if j < 6), fine.hold_split_half, typical)
+    found = search_held(traj, ext, scans, shared, pairs, sorted(j for j in held if j < 6), fine.hold_split_half, TYPICAL_ERROR)
     names = lambda cols: ", ".join(PARAMETERS[JACOBIAN_ORDER.index(j)] for j in cols) or "none"
     log(f"[lidar-first] {sensor}: the shared view ({len(shared.rows.point)} depth edges, {found.evaluations} evaluations) places "
         f"{names(found.accepted)} of {names(found.columns)}" + (f" ({'; '.join(found.notes)})" if found.notes else ""))
@@ -222,6 +212,68 @@ def _place_by_view(sensor: str, traj: Trajectory, scans: ScanSet, pairs, baselin
         if split is not None:
             split[i] = float(found.sigma[j])
     return ext, found
+
+
+def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, observability: Observability,
+                  expected: Sequence[int] = ()) -> Dict[str, object]:
+    """Are the held parameters consistent with the scans? Compare the held fit with one that also frees them.
+
+    A held parameter is inconsistent when freeing it moves it by more than three formal sigmas and a tenth of a typical
+    prior error (1 cm, 0.1 deg, 1 ms): the scans agree better elsewhere, so the value it was held at is likely wrong
+    and the free parameters absorbed that error. How far each parameter moves on release is the data's measure of its
+    error: for a free one the error the held values put into it, which its formal sigma (conditional on the held
+    values) does not contain; for a held one how far the data put it from where it was held.
+
+    Args:
+        estimate: the fit with some parameters held at the prior.
+        released: the fit from ``estimate`` with every parameter free.
+        free: the indices (Jacobian order) the held fit estimated.
+        observability: of the held fit (its formal sigma per parameter).
+        expected: held parameters (Jacobian order) expected to move when released: held because the data hardly
+            determine them (``LidarFirstConfig.hold_weak``), so their move is their sigma, not a disagreement.
+
+    Returns:
+        ``{"held": [...], "released_change": [7], "inconsistent": [...], "sigma_release": [7], "note"}`` in
+        ``observability.PARAMETERS`` order (m, rad, s); ``sigma_release`` is ``|released_change|``; ``note`` says which
+        held parameters disagree and by how much (empty when none does).
+    """
+    change = np.asarray(parameter_difference(estimate.matrix(), estimate.time_offset, released.matrix(), released.time_offset))
+    is_free = np.isin(np.asarray(JACOBIAN_ORDER), free)
+    sigma = np.array([d.sigma for d in observability.dofs])
+    held = [p for p, f in zip(PARAMETERS, is_free) if not f]
+    inconsistent = [p for p, f, c, s, step, j in zip(PARAMETERS, is_free, change, sigma, TEST_STEPS, JACOBIAN_ORDER)
+                    if not f and abs(c) > max(3.0 * s, 0.1 * step) and j not in expected]
+    moves = ", ".join(f"{p} {c * u:+.3g} {unit}" for p, c, (u, unit) in zip(PARAMETERS, change, UNITS) if p in inconsistent)
+    note = f"held at its prior, {', '.join(inconsistent)} disagree with the scans (released, they move by {moves})" if inconsistent else ""
+    return {"held": held, "released_change": change.tolist(), "inconsistent": inconsistent,
+            "sigma_release": np.abs(change).tolist(), "note": note}
+
+
+def split_half_spread(fit: Callable[[np.ndarray, np.ndarray], Optional[Extrinsic]], pairs: Int[np.ndarray, "num 2"],
+                      baselines: Float[np.ndarray, "num"], num_scans: int) -> Float[np.ndarray, "7"]:
+    """Half the difference between the fits of the first and the second half of the drive (why:
+    ``camera_guards.split_half_spread``). The scans are split in time; each half keeps the pairs whose two scans both
+    lie in it and is fitted on its own (``fit``, from the whole drive's estimate).
+
+    Args:
+        fit: ``fit(pairs, baselines) -> Extrinsic``, the stage's fit restricted to those scan pairs (None: the
+            half cannot be fitted, e.g. its scans do not overlap).
+        pairs: scan index pairs of the whole drive (scans in time order).
+        baselines: driving distance of each pair, metres.
+        num_scans: how many scans the drive has.
+
+    Returns:
+        Per parameter of ``observability.PARAMETERS`` (m, rad, s); NaN everywhere (not measured, not "undetermined":
+        the whole drive may still determine them) when a half has no pair or cannot be fitted.
+    """
+    middle = num_scans // 2
+    halves = [(pairs[:, 1] < middle), (pairs[:, 0] >= middle)]
+    if not all(h.any() for h in halves):
+        return np.full(7, np.nan)
+    first, second = (fit(pairs[h], baselines[h]) for h in halves)
+    if first is None or second is None:
+        return np.full(7, np.nan)
+    return np.abs(np.asarray(parameter_difference(first.matrix(), first.time_offset, second.matrix(), second.time_offset))) / 2
 
 
 @dataclass

@@ -1,13 +1,12 @@
 """Paper eq. 1-2 per LiDAR point, vectorised in numpy, and its analytic Jacobian (for the LiDAR-first stage).
 
-``place_points`` is ``x = T_r(t + delta) @ ref_T_L @ p`` for every point at its own firing time; it equals
-``moisst_ns.rig.geometry.interpolate_trajectory`` / ``sensor_pose`` (tested), with each trajectory segment's
-relative rotation computed once and eq. 1 evaluated once per distinct time. No nerfstudio import.
+``place_points`` is ``x = T_r(t + delta) @ ref_T_L @ p`` for every point at its own firing time, eq. 1 being
+``ReferenceTrajectory.pose_and_rates`` evaluated once per distinct time. No nerfstudio import.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Tuple, Union
 
 import numpy as np
@@ -15,46 +14,8 @@ import roma
 import torch
 from jaxtyping import Float, Int
 
-from moisst_ns.rig.format import Rig
+from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
-
-
-@dataclass
-class Trajectory:
-    """The reference trajectory with each segment's relative rotation precomputed (eq. 1, vectorised)."""
-
-    times: Float[np.ndarray, "num_poses"]
-    """Sample times, seconds since ``t0`` (strictly increasing)."""
-    rotations: Float[np.ndarray, "num_poses 3 3"]
-    """``world_R_ref``."""
-    translations: Float[np.ndarray, "num_poses 3"]
-    """``world_t_ref``, metres."""
-    segment_rotvecs: Float[np.ndarray, "num_segments 3"] = field(init=False)
-    """``Log(R_k^T R_{k+1})``, radians."""
-
-    def __post_init__(self):
-        rel = torch.from_numpy(np.einsum("kji,kjl->kil", self.rotations[:-1], self.rotations[1:]))
-        self.segment_rotvecs = roma.rotmat_to_rotvec(rel).numpy()
-
-    @classmethod
-    def from_rig(cls, rig: Rig) -> "Trajectory":
-        quats = torch.from_numpy(np.asarray(rig.trajectory_quats_xyzw, dtype=np.float64))
-        return cls(rig.trajectory_stamps - rig.trajectory_stamps[0], roma.unitquat_to_rotmat(roma.quat_normalize(quats)).numpy(),
-                   np.asarray(rig.trajectory_positions, dtype=np.float64))
-
-    def segments(self, t: Float[np.ndarray, "num"]) -> Tuple[Int[np.ndarray, "num"], Float[np.ndarray, "num"]]:
-        """Segment index (clamped to the end segments: extrapolation) and interpolation factor ``a`` of times ``t``."""
-        seg = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)
-        return seg, (t - self.times[seg]) / (self.times[seg + 1] - self.times[seg])
-
-    def pose_and_rates(self, t: Float[np.ndarray, "num"]):
-        """``world_R_ref(t)``, ``world_t_ref(t)`` (eq. 1), body angular rate (rad/s) and velocity (m/s) at ``t``."""
-        seg, alpha = self.segments(t)
-        step = self.segment_rotvecs[seg]
-        rot = self.rotations[seg] @ roma.rotvec_to_rotmat(torch.from_numpy(alpha[:, None] * step)).numpy()
-        dt = (self.times[seg + 1] - self.times[seg])[:, None]
-        delta_p = self.translations[seg + 1] - self.translations[seg]
-        return rot, self.translations[seg] + alpha[:, None] * delta_p, step / dt, delta_p / dt
 
 
 @dataclass
@@ -80,7 +41,7 @@ class PointTimes:
         return len(self.index)
 
 
-def trajectory_at(traj: Trajectory, times, offset: float):
+def trajectory_at(traj: ReferenceTrajectory, times, offset: float):
     """``traj.pose_and_rates(times + offset)`` for an array of times or ``PointTimes``."""
     if isinstance(times, PointTimes):
         return tuple(a[times.index] for a in traj.pose_and_rates(times.unique + offset))
@@ -137,7 +98,7 @@ def prior_residuals(ext: Extrinsic, prior: Extrinsic, increment: Float[np.ndarra
     return diff / sigma, jac / sigma[:, None]
 
 
-def place_points(traj: Trajectory, ext: Extrinsic, points: Float[np.ndarray, "num 3"], times: Union[Float[np.ndarray, "num"], PointTimes]) -> Float[np.ndarray, "num 3"]:
+def place_points(traj: ReferenceTrajectory, ext: Extrinsic, points: Float[np.ndarray, "num 3"], times: Union[Float[np.ndarray, "num"], PointTimes]) -> Float[np.ndarray, "num 3"]:
     """Paper eq. 1-2 per point: ``x = T_r(t + delta) @ ref_T_L @ p``.
 
     Args:
@@ -155,7 +116,7 @@ def place_points(traj: Trajectory, ext: Extrinsic, points: Float[np.ndarray, "nu
 
 
 def placement_jacobian(
-    traj: Trajectory, ext: Extrinsic, increment: Float[np.ndarray, "7"], points: Float[np.ndarray, "num 3"],
+    traj: ReferenceTrajectory, ext: Extrinsic, increment: Float[np.ndarray, "7"], points: Float[np.ndarray, "num 3"],
     times: Union[Float[np.ndarray, "num"], PointTimes], normals: Float[np.ndarray, "num 3"],
 ) -> Tuple[Float[np.ndarray, "num"], Float[np.ndarray, "num 7"]]:
     """``n . x`` and its derivative with respect to ``increment = (w, v, d)`` of ``ext.updated(increment)``.

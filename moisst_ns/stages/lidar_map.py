@@ -14,12 +14,13 @@ from typing import Callable, Dict, List, Sequence, Tuple
 import numpy as np
 import open3d as o3d
 import torch
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Bool, Float, Int, UInt8
 from torch import Tensor
 
 from moisst_ns.rig.distortion import opencv_distort
 from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
-from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points
+from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.stages.lidar_geometry import Extrinsic, place_points
 
 
 class CameraStageError(ValueError):
@@ -52,7 +53,7 @@ def lidar_map(rig: Rig, calibration: Calibration, voxel: float, min_range: float
     Raises:
         CameraStageError: the rig has no LiDAR or a scan cannot be read.
     """
-    traj = Trajectory.from_rig(rig)
+    traj = ReferenceTrajectory.of(rig)
     t0 = float(rig.trajectory_stamps[0])
     lidars = [n for n, s in rig.sensors.items() if s.type == "lidar"]
     if not lidars:
@@ -119,8 +120,8 @@ def world_to_camera(world_T_cam: Float[Tensor, "num 4 4"], points: Float[Tensor,
     return torch.einsum("nji,nj->ni", world_T_cam[:, :3, :3], points - world_T_cam[:, :3, 3])
 
 
-def visible(uv: Float[np.ndarray, "num 2"], depth: Float[np.ndarray, "num"], model: PinholeModel, cell: int,
-            margin_m: float, margin_fraction: float, max_depth: float) -> Bool[np.ndarray, "num"]:
+def visible(uv: Float[np.ndarray, "num 2"], depth: Float[np.ndarray, "num"], model: PinholeModel, max_depth: float = 40.0, cell: int = 4,
+            margin_m: float = 0.3, margin_fraction: float = 0.03) -> Bool[np.ndarray, "num"]:
     """Which of a frame's projected map points are not hidden behind other map points (a z-buffer).
 
     The nearest depth is kept per ``cell`` x ``cell`` pixel block and spread to the 8 neighbouring blocks (the map
@@ -131,10 +132,10 @@ def visible(uv: Float[np.ndarray, "num 2"], depth: Float[np.ndarray, "num"], mod
         uv: pixel coordinates (full resolution).
         depth: camera depths, metres.
         model: intrinsics (full resolution).
-        cell: z-buffer block size, pixels.
+        max_depth: points farther than this are not used, metres (``CameraRegistrationConfig.max_depth``'s default).
+        cell: z-buffer block size, full-resolution pixels.
         margin_m: absolute depth tolerance, metres.
         margin_fraction: relative depth tolerance.
-        max_depth: points farther than this are not used, metres.
 
     Returns:
         Mask of visible points inside the image.
@@ -169,6 +170,29 @@ class ImageStack:
     """``d I / d u`` and ``d I / d v``, per pixel of this level."""
     model: PinholeModel
 
+    @classmethod
+    def of(cls, images: Float[np.ndarray, "frames h w"], model: PinholeModel) -> "ImageStack":
+        """``images`` (float32) with their gradients."""
+        gy, gx = np.gradient(images, axis=(1, 2))
+        return cls(images, np.stack([gx, gy], axis=1).astype(np.float32), model)
+
+
+def read_grey(rig: Rig, sensor: str, file_path: str) -> UInt8[np.ndarray, "h w"]:
+    """One frame of a camera as 8-bit grey.
+
+    Raises:
+        CameraStageError: the image is missing, unreadable or not of the size rig.json gives.
+    """
+    import cv2
+
+    intr, path = rig.sensors[sensor].intrinsics, rig.root / file_path
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+    if image is None:
+        raise CameraStageError(f"{path}: file_path: missing or not an image")
+    if image.shape != (int(intr["h"]), int(intr["w"])):
+        raise CameraStageError(f"{path}: size {image.shape[1]}x{image.shape[0]} is not rig.json's {intr['w']}x{intr['h']} (sensors.{sensor}.intrinsics)")
+    return image
+
 
 def load_pyramid(rig: Rig, sensor: str, files: Sequence[str], factors: Sequence[int]) -> Dict[int, ImageStack]:
     """Every frame of a camera as grey images at each factor of ``factors`` (``cv2.pyrDown``, Gaussian 5x5).
@@ -178,28 +202,16 @@ def load_pyramid(rig: Rig, sensor: str, files: Sequence[str], factors: Sequence[
     """
     import cv2
 
-    intr = rig.sensors[sensor].intrinsics
     levels: Dict[int, List[np.ndarray]] = {f: [] for f in factors}
     for rel in files:
-        path = rig.root / rel
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
-        if image is None:
-            raise CameraStageError(f"{path}: file_path: missing or not an image")
-        if image.shape != (int(intr["h"]), int(intr["w"])):
-            raise CameraStageError(f"{path}: size {image.shape[1]}x{image.shape[0]} is not rig.json's {intr['w']}x{intr['h']} (sensors.{sensor}.intrinsics)")
-        level, factor = image.astype(np.float32) / 255.0, 1
+        level, factor = read_grey(rig, sensor, rel).astype(np.float32) / 255.0, 1
         while True:
             if factor in levels:
                 levels[factor].append((level - level.mean()) / max(float(level.std()), 1e-3))
             if factor >= max(factors):
                 break
             level, factor = cv2.pyrDown(level), factor * 2
-    stacks = {}
-    for f, images in levels.items():
-        stack = np.stack(images)
-        gy, gx = np.gradient(stack, axis=(1, 2))
-        stacks[f] = ImageStack(stack, np.stack([gx, gy], axis=1).astype(np.float32), PinholeModel.of(intr, f))
-    return stacks
+    return {f: ImageStack.of(np.stack(images), PinholeModel.of(rig.sensors[sensor].intrinsics, f)) for f, images in levels.items()}
 
 
 def bilinear(stack: ImageStack, frame: Int[np.ndarray, "num"], uv: Float[np.ndarray, "num 2"]) -> Tuple[

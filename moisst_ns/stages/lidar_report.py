@@ -12,8 +12,9 @@ import numpy as np
 
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
+from moisst_ns.rig.trust import finite_or_none
 from moisst_ns.stages.lidar_first import LidarFirstConfig, LidarFirstResult, LidarResult
-from moisst_ns.stages.observability import MIN_EFFECT
+from moisst_ns.stages.observability import MIN_EFFECT, UNITS
 
 REPORT_JSON = "lidar_first.json"
 REPORT_MD = "lidar_first.md"
@@ -47,7 +48,7 @@ def stage_summary(result: LidarFirstResult, config: LidarFirstConfig, prior: Cal
         if r.held_check is not None:
             entry["held_check"] = r.held_check
         if r.sigma_split is not None:  # half the difference of the drive's two halves (None: a half could not be fitted)
-            entry["sigma_split_half"] = [float(v) if np.isfinite(v) else None for v in r.sigma_split]
+            entry["sigma_split_half"] = [finite_or_none(v) for v in r.sigma_split]
         if r.view_search is not None:
             entry["view_search"] = r.view_search
         if truth:
@@ -58,10 +59,8 @@ def stage_summary(result: LidarFirstResult, config: LidarFirstConfig, prior: Cal
 
 def observability_lines(result: LidarResult) -> List[str]:
     """One line per parameter: the RMS effect of a typical error, the formal sigma and the verdict."""
-    units = {"x": (100, "cm"), "y": (100, "cm"), "z": (100, "cm"), "time_offset": (1000, "ms")}
     lines = []
-    for d in result.observability.dofs:
-        scale, unit = units.get(d.name, (np.rad2deg(1.0), "deg"))
+    for d, (scale, unit) in zip(result.observability.dofs, UNITS):
         verdict = f"WEAK: {d.reason}" if d.weak else "constrained"
         lines.append(f"  {d.name:<12} effect {1000 * d.effect_m:7.2f} mm   sigma {scale * d.sigma:9.4f} {unit:<3}  {verdict}")
     return lines

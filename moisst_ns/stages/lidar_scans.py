@@ -13,7 +13,8 @@ import open3d as o3d
 from jaxtyping import Float, Int
 
 from moisst_ns.rig.format import Rig, RigFormatError, load_lidar_scan
-from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, Trajectory, place_points, placement_jacobian, trajectory_at
+from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, place_points, placement_jacobian, trajectory_at
 
 class LidarFirstError(ValueError):
     """The LiDAR-first stage cannot run on this input; the message is one line naming the file/sensor and field."""
@@ -76,12 +77,9 @@ class LidarFirstConfig:
     """Estimate ``ref_T_L`` (off: held at the prior, as in the paper's temporal-only Table II)."""
     estimate_time_offset: bool = True
     """Estimate ``delta_L`` (off: held at the prior, as in the paper's spatial-only Table I)."""
-    release_check: bool = True
-    """With a parameter held: fit once more with every parameter free and report which held values the scans disagree
-    with (``release_check``; street rig, delta held 100 ms off: the extrinsic absorbed it, 101 cm off, sigma 371x small)."""
     split_half: bool = True
     """Fit the two halves of the drive apart, from the estimate, and report every parameter's sigma as at least half their
-    difference (``lidar_checks.split_half_spread``; 12 s on the 320x240 street rig beside 35 s): on a 6-scan drive the
+    difference (``lidar_first.split_half_spread``; 12 s on the 320x240 street rig beside 35 s): on a 6-scan drive the
     estimate was 24-48 cm off per axis at formal sigmas of 1-4 cm; the halves differed by metres."""
     hold_split_half: float = 2.0
     """Parameters whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms; the camera stage's
@@ -137,11 +135,11 @@ def _neighbourhood_geometry(points: np.ndarray, config: LidarFirstConfig) -> Tup
     return evecs[:, :, 0], planarity >= config.min_planarity, np.sqrt(np.maximum(evals[:, 0], 0.0))
 
 
-def load_scans(rig: Rig, sensor: str, traj: Trajectory, config: LidarFirstConfig, log: Callable[[str], None] = print) -> ScanSet:
+def load_scans(rig: Rig, sensor: str, traj: ReferenceTrajectory, config: LidarFirstConfig, log: Callable[[str], None] = print) -> ScanSet:
     """Read, filter and analyse every scan of ``sensor``; one-line ``LidarFirstError`` for unusable input."""
     frames = sorted(rig.frames_of(sensor), key=lambda f: f.timestamp)
     t0, prior = float(rig.trajectory_stamps[0]), rig.sensors[sensor].time_offset
-    start, end = traj.times[0] - config.max_extrapolation, traj.times[-1] + config.max_extrapolation
+    start, end = float(traj.times[0]) - config.max_extrapolation, float(traj.times[-1]) + config.max_extrapolation
     rng = np.random.default_rng(config.seed)
     pts, tms, offsets, stamps, normals, planar, thickness, sources, files, dropped = [], [], [0], [], [], [], [], [], [], []
     deskewed = False
@@ -181,7 +179,7 @@ def load_scans(rig: Rig, sensor: str, traj: Trajectory, config: LidarFirstConfig
                    np.concatenate(normals), np.concatenate(planar), np.concatenate(thickness), sources, files, deskewed, dropped)
 
 
-def scan_pairs(traj: Trajectory, scans: ScanSet, prior_offset: float, config: LidarFirstConfig) -> Tuple[np.ndarray, np.ndarray]:
+def scan_pairs(traj: ReferenceTrajectory, scans: ScanSet, prior_offset: float, config: LidarFirstConfig) -> Tuple[np.ndarray, np.ndarray]:
     """Scan pairs ``(a, b)``, ``a < b``, at driving distances of 0.5, 1, 2, 4... m up to ``max_baseline``, and
     each pair's baseline (metres of the reference trajectory between the two scans' stamps)."""
     _, pos, _, _ = traj.pose_and_rates(scans.stamps + prior_offset)
@@ -222,7 +220,7 @@ class Correspondences:
     """Source points queried (before the radius and planarity tests)."""
 
 
-def find_correspondences(traj: Trajectory, ext: Extrinsic, scans: ScanSet, pairs: np.ndarray, radius: float,
+def find_correspondences(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, pairs: np.ndarray, radius: float,
                          config: LidarFirstConfig) -> Correspondences:
     """Nearest neighbours (open3d) of each pair's source samples in its target scan, all placed with ``ext``, kept
     within ``radius``, on planar targets and with agreeing normals."""
@@ -254,7 +252,7 @@ def find_correspondences(traj: Trajectory, ext: Extrinsic, scans: ScanSet, pairs
 
 
 def consistency_residuals(
-    traj: Trajectory, ext: Extrinsic, scans: ScanSet, corr: Correspondences, increment: np.ndarray
+    traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, corr: Correspondences, increment: np.ndarray
 ) -> Tuple[Float[np.ndarray, "num"], Float[np.ndarray, "num 7"]]:
     """Weighted point-to-plane residuals ``w n . (x_src - y_tgt)`` (metres) at ``ext.updated(increment)`` and their
     Jacobian."""

@@ -1,20 +1,10 @@
 """The view a LiDAR shares with the reference camera: its depth edges must fall on the reference camera's image edges.
 
-Motion alone leaves a LiDAR's lever arm and its roll undetermined on a straight drive (``observability``), but the
-reference camera's poses are known, and in a single frame a LiDAR point at a depth discontinuity (the near side of a
-jump in range between neighbours of one ring: a pole, a car, a building corner; or of adjacent beams: a roof)
-projects onto the occluding contour the camera sees as an image edge. A lever-arm error of 10 cm moves those projections by ``f * 0.1 / depth`` pixels
-(3.6 px at 10 m for KITTI at half size), whatever the drive does. Cost: the distance (pixels) from a LiDAR edge
-point's projection, in the reference frame nearest its scan in time, to the nearest Canny edge of that image (a
-distance transform, capped at ``MAX_DISTANCE``: chamfer matching, as edge-based LiDAR-camera calibration does,
-e.g. Levinson and Thrun, RSS 2013; Yuan et al., RA-L 2021). The LiDAR-first stage uses it to place what the drive's
-halves hold at the prior (``search_held``: a global grid, not a local fit: fitted jointly with the point-to-plane
-residuals from the paper prior, the edges had minima everywhere on KITTI raw 0048 and placed nothing).
-
-Measured and dropped first: two-view photometric consistency (a LiDAR point's grey level in two reference frames
-1.5 m apart). Shifting the whole cloud moves both projections alike, so it sees the lever arm only through parallax
-(sigma of the vertical and along-track lever arm 21 m and 68 m on a straight 320x240 street drive), and its coarse
-pyramid levels prefer the cloud pushed 3 m ahead (less parallax, smaller differences). No nerfstudio import.
+Cost: the distance (pixels) from a LiDAR depth-edge point's projection, in the reference frame nearest its scan in
+time, to the nearest Canny edge (chamfer matching, capped at ``MAX_DISTANCE``). The LiDAR-first stage uses it to place
+what the drive's halves hold at the prior (``search_held``: a global grid confirmed per parameter, not a local fit).
+docs/lidar-first.md, "The shared view", has the rules, what was tried and dropped, and the measurements
+(docs/lab/2026-11-25-kitti-shared-view.md). No nerfstudio import.
 """
 
 from __future__ import annotations
@@ -27,10 +17,11 @@ import torch
 from jaxtyping import Float, Int
 
 from moisst_ns.rig.format import Rig
-from moisst_ns.rig.geometry import row_times
+from moisst_ns.rig.geometry import ReferenceTrajectory, row_times
+from moisst_ns.rig.trust import finite_or_none
 from moisst_ns.stages.lidar_edges import scan_edges
-from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory, place_points
-from moisst_ns.stages.lidar_map import CameraStageError, ImageStack, PinholeModel, bilinear, project, visible
+from moisst_ns.stages.lidar_geometry import Extrinsic, place_points
+from moisst_ns.stages.lidar_map import ImageStack, PinholeModel, bilinear, project, read_grey, visible
 from moisst_ns.stages.photometric import huber_costs
 
 MIN_DEPTH = 3.0
@@ -55,7 +46,7 @@ class ReferenceView:
     """The camera's rolling-shutter readout time, seconds (0: global shutter: every point seen from ``poses``)."""
 
 
-def reference_camera(traj: Trajectory, view: ReferenceView, frame: Int[np.ndarray, "num"],
+def reference_camera(traj: ReferenceTrajectory, view: ReferenceView, frame: Int[np.ndarray, "num"],
                      world: Float[np.ndarray, "num 3"]) -> Float[np.ndarray, "num 3"]:
     """World points (metres) in their reference frames' camera frame, each from the pose at its row's time (a rolling
     shutter: ``geometry.row_times``; the reference camera's pose is eq. 1 itself; global shutter: ``view.poses``)."""
@@ -84,34 +75,22 @@ def edge_distance(grey: Float[np.ndarray, "h w"]) -> Float[np.ndarray, "h w"]:
     return np.minimum(cv2.distanceTransform(255 - edges, cv2.DIST_L2, 5), MAX_DISTANCE).astype(np.float32)
 
 
-def reference_view(rig: Rig, traj: Trajectory) -> "ReferenceView | None":
+def reference_view(rig: Rig, traj: ReferenceTrajectory) -> "ReferenceView | None":
     """The reference camera's frames, or None when the reference sensor is not a camera.
 
     Raises:
         CameraStageError: an image is missing, unreadable or not of rig.json's size.
     """
-    import cv2
-
     ref = rig.reference_sensor
     if rig.sensors[ref].type != "camera":
         return None
     frames = sorted(rig.frames_of(ref), key=lambda f: f.timestamp)
-    intr = rig.sensors[ref].intrinsics
-    maps = []
-    for frame in frames:
-        path = rig.root / frame.file_path
-        grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
-        if grey is None or grey.shape != (int(intr["h"]), int(intr["w"])):
-            raise CameraStageError(f"{path}: file_path: missing, not an image or not rig.json's {intr['w']}x{intr['h']} (sensors.{ref})")
-        maps.append(edge_distance(grey))
-    distance = np.stack(maps)
-    gy, gx = np.gradient(distance, axis=(1, 2))
+    distance = np.stack([edge_distance(read_grey(rig, ref, frame.file_path)) for frame in frames])
     stamps = np.array([f.timestamp for f in frames]) - float(rig.trajectory_stamps[0])
     rot, pos, _, _ = traj.pose_and_rates(stamps)
     poses = np.tile(np.eye(4), (len(stamps), 1, 1))
     poses[:, :3, :3], poses[:, :3, 3] = rot, pos
-    return ReferenceView(ref, stamps, poses, ImageStack(distance, np.stack([gx, gy], axis=1).astype(np.float32), PinholeModel.of(intr)),
-                         float(rig.sensors[ref].readout_time))
+    return ReferenceView(ref, stamps, poses, ImageStack.of(distance, PinholeModel.of(rig.sensors[ref].intrinsics)), float(rig.sensors[ref].readout_time))
 
 
 @dataclass
@@ -122,7 +101,7 @@ class ViewRows:
     frame: Int[np.ndarray, "rows"]
 
 
-def view_rows(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView, edges: List[np.ndarray], scan_ids,
+def view_rows(traj: ReferenceTrajectory, ext: Extrinsic, scans, view: ReferenceView, edges: List[np.ndarray], scan_ids,
               max_gap: float) -> ViewRows:
     """Each scan's depth-edge points that the reference frame nearest it in time sees unoccluded (z-buffer of the
     scan itself from that frame).
@@ -138,9 +117,6 @@ def view_rows(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView, edge
     Returns:
         The rows (empty when no frame sees any edge point).
     """
-    from moisst_ns.stages.camera_config import CameraRegistrationConfig  # its z-buffer settings, one place
-
-    c = CameraRegistrationConfig()
     points, frames = [], []
     model = view.distance.model
     for k in scan_ids:
@@ -152,7 +128,7 @@ def view_rows(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView, edge
         world = place_points(traj, ext, scans.points[part], scans.times[part])
         cam = reference_camera(traj, view, np.full(len(world), a), world)
         uv, z = (t.numpy() for t in project(model, torch.from_numpy(cam)))
-        seen = visible(uv, z, model, c.zbuffer_cell, c.occlusion_margin_m, c.occlusion_margin_fraction, c.max_depth) & (z > MIN_DEPTH)
+        seen = visible(uv, z, model) & (z > MIN_DEPTH)
         keep = edges[k][seen[edges[k]]]
         points.append(keep + part.start), frames.append(np.full(len(keep), a))
     if not points:
@@ -160,7 +136,7 @@ def view_rows(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView, edge
     return ViewRows(np.concatenate(points), np.concatenate(frames))
 
 
-def view_residuals(traj: Trajectory, ext: Extrinsic, scans, view: ReferenceView, rows: ViewRows,
+def view_residuals(traj: ReferenceTrajectory, ext: Extrinsic, scans, view: ReferenceView, rows: ViewRows,
                    increment: Float[np.ndarray, "7"]) -> Float[np.ndarray, "rows"]:
     """Distance (pixels) from each row's projection at ``ext.updated(increment)`` to the nearest image edge. A
     projection that leaves the image reads the border: scoring it otherwise made fits gain by pushing points out of the
@@ -183,7 +159,7 @@ class SharedView:
     rows: Optional[ViewRows] = None
 
     @classmethod
-    def of(cls, rig: Rig, traj: Trajectory, scans) -> Optional["SharedView"]:
+    def of(cls, rig: Rig, traj: ReferenceTrajectory, scans) -> Optional["SharedView"]:
         """The shared view of the rig's reference camera for the ``lidar_first.ScanSet`` ``scans``, or None when the
         reference sensor is not a camera.
 
@@ -202,7 +178,7 @@ class SharedView:
         ranges = np.linalg.norm(scans.points[self.rows.point], axis=1)
         return np.r_[np.full(3, self.spacing / 2), np.full(3, self.spacing / 2 * (np.median(ranges) if len(ranges) else 0.0)), 0.0]
 
-    def at(self, traj: Trajectory, ext: Extrinsic, scans, pairs: np.ndarray) -> "SharedView":
+    def at(self, traj: ReferenceTrajectory, ext: Extrinsic, scans, pairs: np.ndarray) -> "SharedView":
         """The rows seen at ``ext`` by the scans of ``pairs`` (a scan pairs with the reference frame nearest it in time,
         within 0.6 of the reference camera's median frame interval)."""
         gap = 0.6 * float(np.median(np.diff(self.view.stamps))) if len(self.view.stamps) > 1 else 0.05
@@ -247,10 +223,10 @@ class ViewSearch:
 
     def to_json(self) -> dict:
         return {"columns": self.columns, "accepted": self.accepted, "increment": self.increment.tolist(),
-                "sigma": [None if not np.isfinite(v) else float(v) for v in self.sigma], "notes": self.notes, "evaluations": self.evaluations}
+                "sigma": [finite_or_none(v) for v in self.sigma], "notes": self.notes, "evaluations": self.evaluations}
 
 
-def search_held(traj: Trajectory, ext: Extrinsic, scans, shared: SharedView, pairs: np.ndarray, columns: List[int], hold: float,
+def search_held(traj: ReferenceTrajectory, ext: Extrinsic, scans, shared: SharedView, pairs: np.ndarray, columns: List[int], hold: float,
                 typical: Float[np.ndarray, "7"]) -> ViewSearch:
     """Place ``columns`` (the parameters the drive's motion left undetermined) by the shared view, the other parameters at
     ``ext``.

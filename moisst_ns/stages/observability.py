@@ -1,18 +1,9 @@
 """Which calibration parameters a drive constrains, from the Jacobian of a calibration's residuals.
 
-For each of a sensor's 7 parameters (lever arm x, y, z in the reference frame; rotation about the sensor's own x,
-y, z axes, called roll, pitch, yaw; time offset) the *marginal sensitivity* is the RMS change of the residuals per
-unit change of that parameter when the 6 others re-fit to absorb it (the Schur complement of the Gauss-Newton
-information ``J^T W J``, normalised per residual). A parameter is *weakly observable* when moving it by a typical
-prior error (``TEST_STEPS``: 10 cm, 1 deg, 10 ms) changes the residuals by less than ``MIN_EFFECT`` (2 mm RMS, a
-fraction of a LiDAR's range noise): the drive cannot tell that error apart, whatever the solver does. The reason
-given comes from the trajectory itself: a lever arm shows only through rotations about the other axes (a flat
-drive leaves the vertical weak), a rotation only through distance driven, a time offset only through velocity
-changes (at constant speed on a straight line it is collinear with the lever arm along the direction of travel;
-see Yang et al., "Degenerate motion analysis for aided INS", RSS 2019). The parameter order, test steps, marginal
-information, the drive's ``excitation`` and the one ``_reason`` are shared with ``drive_observability`` (what the
-drive alone separates, before any training).
-
+Per parameter, the marginal sensitivity (Schur complement of ``J^T W J``: the other 6 re-fitted) and the RMS effect of
+a typical prior error (``TEST_STEPS``); weak below ``MIN_EFFECT``, with the reason taken from the trajectory
+(``_reason``). The parameter order, test steps, marginal information, ``excitation`` and ``_reason`` are shared with
+``drive_observability``. docs/lidar-first.md, "Observability", and docs/uncertainty.md explain and measure it.
 Nothing here imports nerfstudio.
 """
 
@@ -32,6 +23,8 @@ JACOBIAN_ORDER = (3, 4, 5, 0, 1, 2, 6)
 """Column of each of ``PARAMETERS`` in a Jacobian ordered (rotation vector, translation, time offset)."""
 TEST_STEPS = (0.10, 0.10, 0.10, np.deg2rad(1.0), np.deg2rad(1.0), np.deg2rad(1.0), 0.010)
 """A typical prior error per parameter: 10 cm, 1 degree, 10 ms."""
+TYPICAL_ERROR = np.asarray(TEST_STEPS)[list(JACOBIAN_ORDER)]
+"""``TEST_STEPS`` in Jacobian (solver) order, rad, m, s (the order is its own inverse)."""
 UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
 """Display scale and unit of each of ``PARAMETERS`` (from m, rad, s)."""
 MIN_EFFECT = 0.002
@@ -147,7 +140,7 @@ def analyse_observability(
             frame, time offset), metres per radian / metre / second.
         residuals: residuals at the solution, metres.
         weights: robust (IRLS) weight of each residual.
-        traj: the reference trajectory (``Trajectory``), for the reasons.
+        traj: the reference trajectory (``ReferenceTrajectory``), for the reasons.
         times: reference-clock times of the sensor's frames (seconds since ``t0``).
         sensor_rotation: ``ref_R_sensor`` (to say in which direction the sensor travels).
 

@@ -205,8 +205,7 @@ class Registration:
         cam = (self.world[index] - pose[:3, 3]) @ pose[:3, :3]
         uv, z = project(model, torch.from_numpy(cam))
         uv, z = uv.numpy(), z.numpy()
-        c = self.config
-        ok = visible(uv, z, model, c.zbuffer_cell, c.occlusion_margin_m, c.occlusion_margin_fraction, c.max_depth)
+        ok = visible(uv, z, model, self.config.max_depth)
         mask = np.zeros(len(self.world), dtype=bool)
         mask[index[ok]] = True
         return mask

@@ -1,18 +1,9 @@
 """Standard deviations of least-squares parameters from residuals and their Jacobian (Gauss-Newton / Fisher).
 
-At a least-squares solution ``x`` of residuals ``r(x)`` with Jacobian ``J``, the Gauss-Newton information is
-``H = J^T J``. Two estimates of ``Cov(x)``:
-
-* *classical*: ``s^2 H^-1`` with ``s^2 = r^T r / (n - p)``: exact for independent residuals of equal variance;
-* *cluster-robust* (sandwich, Liang & Zeger 1986): ``H^-1 (sum_g J_g^T r_g r_g^T J_g) H^-1 G / (G - 1)`` over clusters
-  ``g`` (e.g. the frames the rays come from): valid for any correlation *within* a cluster (neighbouring pixels
-  of a NeRF share its errors), it is the linearised jackknife over clusters: how far the estimate would move if
-  the frames were drawn again.
-
-``sigmas`` takes, per parameter, the larger of the two (the classical one guards against a sandwich that is
-unreliable with few clusters). A parameter the residuals do not constrain (``H`` singular along it) gets inf.
-
-Pure numpy: nothing here imports nerfstudio.
+Per parameter the larger of the classical ``s^2 H^-1`` and the cluster-robust (sandwich, Liang & Zeger 1986, the
+clusters e.g. the frames) estimate, ``H = J^T J``; inf along a direction ``H`` does not constrain; and what a camera
+fitted to a LiDAR's map inherits from that LiDAR's sigma (``inherited_sigma``). docs/uncertainty.md, section 2,
+explains and measures them. Pure numpy: nothing here imports nerfstudio.
 """
 
 from __future__ import annotations

@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from moisst_ns.rig.format import load_calibration, load_rig
+from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
 from moisst_ns.stages.lidar_first import LidarFirstConfig, load_scans, scan_pairs
-from moisst_ns.stages.lidar_geometry import Extrinsic, Trajectory
+from moisst_ns.stages.lidar_geometry import Extrinsic
 from moisst_ns.stages.lidar_view import SharedView, search_held
 from moisst_ns.stages.observability import JACOBIAN_ORDER, TEST_STEPS
 
@@ -32,7 +33,7 @@ else:
         c, v = item.split(":")
         inc[int(c)] = float(v)
     ext = gt.updated(inc)
-traj, config = Trajectory.from_rig(rig), LidarFirstConfig()
+traj, config = ReferenceTrajectory.of(rig), LidarFirstConfig()
 scans = load_scans(rig, lidar, traj, config, log=lambda _: None)
 pairs, _ = scan_pairs(traj, scans, ext.time_offset, config)
 shared = SharedView.of(rig, traj, scans).at(traj, ext, scans, pairs)
