@@ -2,6 +2,8 @@
 # Install moisst-ns into .venv/ at the repo root (idempotent; skipped when nothing it depends on changed).
 # Needs: python3.11 and Debian's apt (open3d needs libusb-1.0-0). Nothing is downloaded at run time afterwards.
 #
+# MOISST_EXTRAS=fleet also installs pyproject.toml's `fleet` extra (Ray, for moisst-fleet; `make test` sets it).
+#
 # torch: MOISST_TORCH=cpu|cuda|auto (default auto: cuda when `nvidia-smi -L` lists a GPU, else cpu).
 #   cpu : torch 2.13.0, CPU build (the machine's local wheel when pip's find-links has one, else PyTorch's CPU
 #         index, else PyPI's build), with torchvision 0.28.0. PyPI's torchvision is a CUDA build; beside a CPU
@@ -36,8 +38,11 @@ esac
 
 PY=${PYTHON:-python3.11}
 STAMP=.venv/.moisst-installed
-WANT=$( (cat pyproject.toml scripts/install.sh scripts/nerfstudio-deps.txt; echo "$TORCH_KIND") | sha256sum | cut -d' ' -f1)
-if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ]; then
+EXTRAS=${MOISST_EXTRAS:-}
+stamp() { (cat pyproject.toml scripts/install.sh scripts/nerfstudio-deps.txt; echo "$TORCH_KIND $1") | sha256sum | cut -d' ' -f1; }
+WANT=$(stamp "$EXTRAS")
+# a venv with the fleet extra serves a plain install too (make demo after make test)
+if [ -f "$STAMP" ] && { [ "$(cat "$STAMP")" = "$WANT" ] || { [ -z "$EXTRAS" ] && [ "$(cat "$STAMP")" = "$(stamp fleet)" ]; }; }; then
     echo "[install] .venv up to date"
     exit 0
 fi
@@ -69,11 +74,12 @@ if [ "$(uname -s)-$(uname -m)" = Linux-x86_64 ]; then
 else
     OPEN3D="open3d>=0.17"
 fi
-# pyproject.toml's dependencies and test extra, less nerfstudio and open3d (installed as above and below)
-.venv/bin/python - > .venv/moisst-requirements.txt <<'EOF'
-import re, tomllib
+# pyproject.toml's dependencies, test extra and MOISST_EXTRAS, less nerfstudio and open3d (installed as above and below)
+MOISST_EXTRAS="$EXTRAS" .venv/bin/python - > .venv/moisst-requirements.txt <<'EOF'
+import os, re, tomllib
 project = tomllib.load(open("pyproject.toml", "rb"))["project"]
-for dep in project["dependencies"] + project["optional-dependencies"]["test"]:
+extras = ["test"] + [e for e in os.environ["MOISST_EXTRAS"].split(",") if e]
+for dep in project["dependencies"] + [d for e in extras for d in project["optional-dependencies"][e]]:
     if re.match(r"(nerfstudio|open3d)\b", dep) is None:
         print(dep)
 EOF

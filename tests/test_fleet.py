@@ -233,6 +233,17 @@ def _manifest(path: Path, drives, steps: int = 3, extra: str = "") -> Path:
     return _write(path, text)
 
 
+def test_without_ray_the_fleet_stops_with_one_line(tmp_path, monkeypatch):
+    """Ray is an optional dependency (pyproject's ``fleet`` extra): without it, one line saying how to add it."""
+    from moisst_ns.fleet.run import FleetConfig, start_ray
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # ``import ray`` raises ImportError
+    monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")  # start_ray sets it; restored after
+    with pytest.raises(FleetError, match=r"^moisst-fleet needs Ray, an optional dependency: make install-fleet") as err:
+        start_ray(FleetConfig(tmp_path / "fleet.toml", output_dir=tmp_path / "out"), tmp_path / "shim")
+    assert "\n" not in str(err.value)
+
+
 def test_a_corrupted_drive_fails_alone_and_the_fleet_completes(tmp_path, tiny_drives):
     import shutil
 

@@ -142,7 +142,7 @@ def start_ray(cfg: FleetConfig, shim: Path) -> None:
     try:
         import ray
     except ImportError:
-        raise FleetError("ray is not installed: run scripts/install.sh (README: set-up)") from None
+        raise FleetError("moisst-fleet needs Ray, an optional dependency: make install-fleet (or pip install '.[fleet]')") from None
     kwargs = dict(log_to_driver=False, logging_level=logging.ERROR)
     saved = os.environ.get("PYTHONPATH")
     if cfg.address is None:
