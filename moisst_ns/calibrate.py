@@ -18,20 +18,34 @@ from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.stage_run import CalibrationError, CalibrationSwitches, seed_everything
 
 
+@dataclass(kw_only=True)
+class SceneRunConfig:
+    """Settings shared by ``moisst-calibrate`` and ``moisst-floor``."""
+
+    method: Literal["moisst", "moisst-lite"] = "moisst-lite"
+    """``moisst`` (paper settings, for a GPU) or ``moisst-lite`` (2 CPU cores)."""
+    seed: int = 42
+    """Random seed (sampling, initialisation)."""
+    threads: Optional[int] = None
+    """torch CPU threads (pin for bit-repeatable runs); torch's default when omitted."""
+    depth_loss_per_m2: Optional[float] = None
+    """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
+    method's normalised-depth loss (the paper's) when omitted."""
+    verbose: bool = False
+    """Show every third-party warning and banner (by default the known-harmless ones are hidden:
+    ``moisst_ns.quiet``)."""
+
+
 @dataclass
-class CalibrateConfig(CalibrationSwitches):
+class CalibrateConfig(CalibrationSwitches, SceneRunConfig):
     """Calibrate the extrinsics and time offsets of a rig (MOISST)."""
 
     dataset: tyro.conf.Positional[Path]
     """Dataset folder holding rig.json (moisst-rig/1)."""
     output_dir: Path = Path("outputs/calibration")
     """Where calibration.json and the nerfstudio run go (created; must not be a file)."""
-    method: Literal["moisst", "moisst-lite"] = "moisst-lite"
-    """``moisst`` (paper settings, for a GPU) or ``moisst-lite`` (2 CPU cores)."""
     max_num_iterations: Optional[int] = None
     """Training steps (schedules scale with it); the method's default when omitted."""
-    seed: int = 42
-    """Random seed (sampling, initialisation)."""
     viewer: bool = False
     """Also serve nerfstudio's viewer during training (on 127.0.0.1 unless --viewer-host)."""
     viewer_host: str = "127.0.0.1"
@@ -59,14 +73,6 @@ class CalibrateConfig(CalibrationSwitches):
     """Continue the run in --output-dir from its latest checkpoint (calibration, scene and optimiser state)."""
     save_every: Optional[int] = None
     """Checkpoint every N steps and keep every checkpoint (default: the method's, latest only)."""
-    threads: Optional[int] = None
-    """torch CPU threads (pin for bit-repeatable runs); torch's default when omitted."""
-    depth_loss_per_m2: Optional[float] = None
-    """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
-    method's normalised-depth loss (the paper's) when omitted."""
-    verbose: bool = False
-    """Show every third-party warning and banner (by default the known-harmless ones are hidden:
-    ``moisst_ns.quiet``)."""
 
 
 def rig_trainer_config(method: str, steps: Optional[int], root: Path, out: Path, timestamp: str, seed: int):

@@ -24,7 +24,6 @@ from moisst_ns.rig.calibration import RigCalibration, RigData
 from moisst_ns.rig.geometry import pose_to_xyz_rpy
 
 
-
 @dataclass
 class CalibrationOptimizerConfig(CameraOptimizerConfig):
     """Rig calibration: one extrinsic correction and one time offset per non-reference sensor (nerfstudio's inherited
@@ -35,10 +34,6 @@ class CalibrationOptimizerConfig(CameraOptimizerConfig):
     """Optimise the extrinsics (paper Table I / V: spatial)."""
     optimize_time_offsets: bool = True
     """Optimise the time offsets (paper Table II / V: temporal)."""
-    trans_l2_penalty: float = 0.0
-    """L2 penalty on the translation corrections (metres); the paper uses none."""
-    rot_l2_penalty: float = 0.0
-    """L2 penalty on the rotation corrections (radians); the paper uses none."""
     max_translation: float = 2.0
     """Bound on each axis of the translation correction, metres (<= 0: unbounded)."""
     max_rotation_deg: float = 30.0
@@ -198,13 +193,6 @@ class CalibrationOptimizer(CameraOptimizer):
         return self.frame_c2w(idx)[:, :3, :4].to(camera.camera_to_worlds)
 
     # --- nerfstudio hooks ----------------------------------------------------------------------------------------
-
-    def get_loss_dict(self, loss_dict: dict) -> None:
-        if self.rig is not None and (self.config.trans_l2_penalty > 0 or self.config.rot_l2_penalty > 0):
-            loss_dict["calibration_regularizer"] = (
-                self.rig.translation.norm(dim=-1).mean() * self.config.trans_l2_penalty
-                + self.rig.rotvec.norm(dim=-1).mean() * self.config.rot_l2_penalty
-            )
 
     def get_metrics_dict(self, metrics_dict: dict) -> None:
         """Per-sensor estimates and, with ground truth, errors (cm, deg, ms)."""

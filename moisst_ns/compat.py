@@ -8,6 +8,9 @@ resuming would fail. We allow-list exactly those numpy types instead of turning 
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+from typing import Iterator
+
 import numpy as np
 import torch
 from torch import Tensor, nn
@@ -15,15 +18,12 @@ from torch import Tensor, nn
 
 def allow_numpy_in_checkpoints() -> None:
     """Register numpy scalar reconstruction helpers and dtypes as safe globals for ``torch.load``."""
-    add = getattr(torch.serialization, "add_safe_globals", None)
-    if add is None:  # torch < 2.4: weights_only defaults to False, nothing to do
-        return
     safe = [np.core.multiarray.scalar, np.dtype, np.ndarray, np.core.multiarray._reconstruct]
     for name in ("Float64DType", "Float32DType", "Int64DType", "Int32DType", "BoolDType"):
         dtype_cls = getattr(getattr(np, "dtypes", None), name, None)
         if dtype_cls is not None:
             safe.append(dtype_cls)
-    add(safe)
+    torch.serialization.add_safe_globals(safe)
 
 
 class _NoLPIPS(nn.Module):
@@ -34,3 +34,15 @@ class _NoLPIPS(nn.Module):
 
     def forward(self, *args, **kwargs) -> Tensor:
         return torch.tensor(float("nan"))
+
+
+@contextmanager
+def without_lpips() -> Iterator[None]:
+    """Within it, torchmetrics' LPIPS is ``_NoLPIPS`` (for nerfacto's ``populate_modules``, which builds one)."""
+    from torchmetrics.image import lpip
+
+    original, lpip.LearnedPerceptualImagePatchSimilarity = lpip.LearnedPerceptualImagePatchSimilarity, _NoLPIPS
+    try:
+        yield
+    finally:
+        lpip.LearnedPerceptualImagePatchSimilarity = original

@@ -80,10 +80,7 @@ def compile_hash_encodings(encodings: Sequence[nn.Module], device: torch.device 
         return "no C++ compiler on PATH (g++, c++ or clang++): inductor cannot build its CPU kernels"
     from torch import _dynamo
 
-    config = _dynamo.config
-    for name in ("recompile_limit", "cache_size_limit"):
-        if hasattr(config, name):
-            setattr(config, name, max(getattr(config, name), _MIN_RECOMPILE_LIMIT))
+    _dynamo.config.recompile_limit = max(_dynamo.config.recompile_limit, _MIN_RECOMPILE_LIMIT)
     deterministic = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
     if not deterministic[0]:
         torch.use_deterministic_algorithms(True, warn_only=True)

@@ -1,16 +1,12 @@
 """The accuracy floor of a dataset at a training budget (``moisst-floor``, and the ``floor`` cases of ``moisst-bench``).
 
-A calibration can only be as good as the scene it registers against. With ``--stages`` (the default) it first measures
-the floor of the two stages that calibrate a rig with a LiDAR before any NeRF step (``moisst_ns.stages.stage_floor``:
-LiDAR first and the camera registration started at the truth, and the LiDAR map's depth errors). Then (``--nerf``, the
-default) ``run_floor`` trains the scene with every
-sensor held at its *true* calibration (the same field, rays, losses and step count as the method), freezes the
-scene, then releases every sensor's calibration *at the truth* and lets the calibration losses move it for
-``register_steps`` steps. Where the sensors settle is the floor: a minimum of the losses that is not the truth, so
-no schedule of the joint optimisation can be expected to end closer than this with that scene budget. It also
-measures the scene's geometry directly: the median depth error of camera rays (against the exact synthetic scene,
-on ``moisst-synth`` rigs, for rays whose surface the LiDAR can see) and of LiDAR rays (against the measured ranges).
-Nothing is written into the dataset.
+A calibration can only be as good as the scene it registers against. ``run_floor`` measures the floor of the pre-NeRF
+stages (``FloorConfig.stages``), then trains the scene with every sensor held at its *true* calibration (the same
+field, rays, losses and step count as the method), freezes it, releases every sensor's calibration *at the truth* and
+lets the calibration losses move it for ``register_steps`` steps. Where the sensors settle is the floor: a minimum of
+the losses that is not the truth, so no schedule of the joint optimisation can be expected to end closer than this
+with that scene budget. It also measures the scene's depth errors (``camera_depth_errors``, and LiDAR rays against
+their ranges). Nothing is written into the dataset.
 """
 
 from __future__ import annotations
@@ -20,11 +16,11 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Literal, Optional
+from typing import Dict, List, Optional
 
 import numpy as np
 
-from moisst_ns.calibrate import apply_scene_switches, rig_trainer_config
+from moisst_ns.calibrate import SceneRunConfig, apply_scene_switches, rig_trainer_config
 from moisst_ns.stage_run import fixed_calibration_scene, map_range_settings, seed_everything
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
@@ -37,15 +33,13 @@ class FloorError(ValueError):
 
 
 @dataclass
-class FloorConfig:
+class FloorConfig(SceneRunConfig):
     """Measure how close to the truth a scene of this budget lets the calibration settle."""
 
     dataset: Path
     """Dataset folder holding rig.json and ground_truth.json."""
     output_dir: Path = Path("outputs/floor")
     """Where floor.json, floor_history.csv and the nerfstudio run of the scene go."""
-    method: Literal["moisst", "moisst-lite"] = "moisst-lite"
-    """Preset whose field, rays, losses and schedules build the scene."""
     scene_steps: Optional[int] = None
     """Steps to train the scene at the true calibration (the method's default run length when omitted)."""
     register_steps: int = 300
@@ -54,18 +48,9 @@ class FloorConfig:
     """Log every sensor's errors every this many registration steps."""
     average_last: int = 4
     """The floor is the mean error over this many last logged estimates."""
-    seed: int = 42
-    """Random seed (sampling, initialisation)."""
-    threads: Optional[int] = None
-    """torch CPU threads; torch's default when omitted."""
-    depth_loss_per_m2: Optional[float] = None
-    """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
-    method's normalised-depth loss (the paper's) when omitted."""
     map_range_mult: float = 0.0
     """Supervise every camera's rays with the LiDAR map's range, this weight per m^2 (the scene trains at the truth, so
     every pose is known; ``moisst-calibrate --map-range-mult`` does it for the cameras the stages hold); 0: off."""
-    verbose: bool = False
-    """Show every third-party warning (known-harmless ones are hidden by default: ``moisst_ns.quiet``)."""
     depth_check_rays: int = 8192
     """Camera rays whose rendered depth is compared with the true surface (0: skip the depth check)."""
     nerf: bool = True

@@ -16,7 +16,6 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from moisst_ns.calibration_optimizer import CalibrationOptimizerConfig
 from moisst_ns.data.datamanager import MoisstDataManagerConfig
 from moisst_ns.data.dataparser import MoisstRigDataParserConfig
 from moisst_ns.model import MoisstModelConfig
@@ -50,7 +49,6 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
     model = MoisstModelConfig(
         eval_num_rays_per_chunk=1 << 12 if lite else 1 << 15,
         average_init_density=0.01,
-        camera_optimizer=CalibrationOptimizerConfig(),
         hash_weight_decay_steps=int(0.1 * default),
         depth_loss_start=int(0.04 * default),
         depth_loss_ramp_steps=int(0.05 * default),
@@ -60,11 +58,10 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         dataparser=MoisstRigDataParserConfig(),
         lidar_rays_per_batch=256 if lite else 1024,
         train_num_rays_per_batch=1024 if lite else 4096,
-        # The patch losses of eq. 13 (DSSIM, depth smoothness) use a quarter of the camera rays, sampled as P x P
-        # patches. On for `moisst` (the paper's losses); off for `moisst-lite` (--patch-size 4 turns them on),
+        # The patch losses of eq. 13 (DSSIM, depth smoothness) use a quarter of the camera rays (``patch_fraction``),
+        # sampled as P x P patches. On for `moisst` (the paper's losses); off for `moisst-lite` (--patch-size 4 turns them on),
         # because at its budget they measured worse (docs/method.md, "Schedules", item 6).
         patch_size=1 if lite else 8,
-        patch_fraction=0.25,
         eval_num_rays_per_batch=1024 if lite else 4096,
     )
     if lite:
@@ -99,15 +96,9 @@ def moisst_trainer_config(method: str = "moisst", max_num_iterations: int | None
         steps_per_eval_all_images=10**9,
         steps_per_save=max(steps // 3, 100) if lite else 2000,
         max_num_iterations=steps,
-        mixed_precision=False,
-        use_grad_scaler=False,
-        save_only_latest_checkpoint=True,
         machine=MachineConfig(device_type=device),
         logging=LoggingConfig(steps_per_log=25 if lite else 100),
-        pipeline=MoisstPipelineConfig(
-            datamanager=datamanager,
-            model=model,
-        ),
+        pipeline=MoisstPipelineConfig(datamanager=datamanager, model=model),
         optimizers={
             "proposal_networks": _adam_decay(1e-2, default, weight_decay=1e-6),
             "fields": _adam_decay(1e-2, default, weight_decay=1e-6),

@@ -14,7 +14,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Tuple, Type
-from unittest import mock
 
 import torch
 from torch import Tensor
@@ -27,7 +26,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from moisst_ns.runs.history import append_history
 from moisst_ns.viewer_panel import CalibrationPanel
-from moisst_ns.compat import _NoLPIPS, allow_numpy_in_checkpoints
+from moisst_ns.compat import allow_numpy_in_checkpoints, without_lpips
 from moisst_ns.data.layout import RayLayout
 from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss, map_range_loss
 from moisst_ns.schedules import rescale_schedules
@@ -35,6 +34,12 @@ from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOpt
 from moisst_ns.contraction import use_linf_contraction
 
 allow_numpy_in_checkpoints()  # nerfstudio 1.1.5 checkpoints under torch >= 2.6 (moisst_ns.compat)
+
+COARSE_TO_FINE_START_LEVELS = 2.0
+"""Levels fully on at the start of the coarse-to-fine release."""
+COMPILE_MIN_STEPS = 300
+"""Shortest run that ``compile_hash_grid="auto"`` compiles for (a cold compile costs about as much as it saves in 300
+``moisst-lite`` steps)."""
 
 
 def hash_level_weights(progress: float, num_levels: int, start_levels: float) -> Tensor:
@@ -77,15 +82,12 @@ class MoisstModelConfig(NerfactoModelConfig):
     the scene is first built from the one sensor whose poses are known."""
     coarse_to_fine: Tuple[int, int] = (0, 0)
     """(start, end) steps of a BARF-style release of the hash levels: before ``start`` only
-    ``coarse_to_fine_start_levels`` levels are on, at ``end`` all; (0, 0) disables it."""
-    coarse_to_fine_start_levels: float = 2.0
-    """Levels fully on at the start of the coarse-to-fine release."""
+    ``COARSE_TO_FINE_START_LEVELS`` levels are on, at ``end`` all; (0, 0) disables it."""
     depth_loss_mult: float = 20.0
-    """lambda_D of paper eq. 13: weight of the LiDAR depth loss (L2 on the expected ray depth, model units).
-    Model units are metres x the dataparser's ``world_scale`` (the drive normalised into the unit box), so the weight
-    per square metre is ``lambda_D * world_scale**2`` and falls with the drive's extent (0.03 on the 50-frame
-    synthetic rig). moisst-floor measured a five-fold lower floor with 500 on the tiny rig; docs/method.md. With
-    ``depth_loss_units="metric"`` it is per square metre instead, whatever the drive's extent."""
+    """lambda_D of paper eq. 13: weight of the LiDAR depth loss (L2 on the expected ray depth, ``depth_loss_units``).
+    Model units are metres x the dataparser's ``world_scale``, so per square metre it is ``lambda_D * world_scale**2``
+    and falls with the drive's extent (0.03 on the 50-frame synthetic rig; moisst-floor measured a five-fold lower
+    floor with 500 on the tiny rig)."""
     depth_loss_units: Literal["model", "metric"] = "model"
     """Units of the depth loss: ``model`` (the paper's, normalised depths) or ``metric`` (the depth error in metres,
     so ``depth_loss_mult`` is per m^2 on every rig)."""
@@ -104,36 +106,20 @@ class MoisstModelConfig(NerfactoModelConfig):
     """Every this many steps, append each sensor's estimate (and errors, with ground truth) to
     ``calibration_history.csv`` in the run folder."""
     registration_steps: int = 0
-    """Until this step, rays of non-reference sensors do not update the scene (their losses move only their
-    calibration): the scene is built from the sensor whose poses are known (and the others register against it,
-    as in SOAC), so it cannot absorb their miscalibration. 0 disables it; so does a LiDAR reference sensor (no
-    camera's poses are known then: every sensor trains jointly after the warm-up, as in the paper)."""
+    """Until this step, rays of non-reference sensors do not update the scene, only their calibration (they register
+    against the reference camera's scene, as in SOAC). 0 disables it; so does a LiDAR reference sensor."""
     depth_loss_ramp_steps: int = 0
     """The depth loss weight rises linearly from 0 to ``depth_loss_mult`` over this many steps after
     ``depth_loss_start`` (avoids a gradient spike on the LiDAR's calibration when depth first applies)."""
-    print_calibration: bool = True
-    """Print each sensor's current delta and change from its prior whenever the history is logged."""
     hash_weight_decay_steps: int = 0
     """Step at which the hash grids' weight decay (set on the ``hash_grids`` optimiser) is removed (paper
     III-C.3: kept for the first epochs, then removed so finer detail can be learned)."""
     compile_hash_grid: Literal["auto", "on", "off"] = "auto"
-    """``torch.compile`` the torch hash-grid encodings (``moisst_ns.compiled_grid``: 1.7x on a ``moisst-lite`` step
-    on 2 CPU cores, docs/benchmarks.md); it switches on torch's deterministic algorithms so that the same seed keeps
-    giving the same result. ``auto``: on for CPU runs of at least ``compile_min_steps`` steps (compiling costs
-    ~20-40 s once per process, less with inductor's on-disk cache); ``on``: whatever the length; ``off``: eager.
-    Without a C++ compiler, on CUDA, or when compiling fails, the encodings stay eager with a one-line note."""
-    compile_min_steps: int = 300
-    """Shortest run that ``compile_hash_grid="auto"`` compiles for (a cold compile costs about as much as it saves
-    in 300 ``moisst-lite`` steps)."""
-    detach_proposal_positions: bool = True
-    """The proposal networks see the sample positions detached from the calibration. They only choose where the
-    field samples (nerfacto's interlevel loss fits them to the field's weights); without this, that fitting loss
-    pulls on every sensor's extrinsic and time offset, and their backward computes a position gradient that is
-    ~40 % of a ``moisst`` step (docs/benchmarks.md). The field's samples keep their gradient."""
+    """``torch.compile`` the torch hash-grid encodings (``moisst_ns.compiled_grid``). ``auto``: on for CPU runs of at
+    least ``COMPILE_MIN_STEPS`` steps (compiling costs ~20-40 s once per process); ``on``: always; ``off``: eager."""
     schedule_steps: int = 0
-    """Run length the step-valued schedules above (and the datamanager's phases and the optimisers' decays) were
-    built for. When the trainer runs another length (``ns-train moisst-lite --max-num-iterations N``), every one is
-    rescaled by ``N / schedule_steps`` at set-up so the run keeps its shape. 0: never rescale."""
+    """Run length the schedules were built for; another trainer length rescales them at set-up
+    (``schedules.rescale_schedules``). 0: never rescale."""
 
 
 class MoisstModel(NerfactoModel):
@@ -143,7 +129,7 @@ class MoisstModel(NerfactoModel):
     camera_optimizer: CalibrationOptimizer
 
     def populate_modules(self):
-        with mock.patch("torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity", _NoLPIPS):
+        with without_lpips():
             super().populate_modules()
         use_linf_contraction(self)  # the same contraction without torch's slow CPU max norm (moisst_ns.contraction)
         metadata = self.kwargs.get("metadata") or {}
@@ -162,8 +148,11 @@ class MoisstModel(NerfactoModel):
             else:
                 for enc in self._hash_encodings:
                     enc.register_forward_hook(self._mask_levels)
-        if self.config.detach_proposal_positions:
-            self.density_fns = [_detached_positions(fn) for fn in self.density_fns]
+        # The proposal networks see the sample positions detached from the calibration. They only choose where the
+        # field samples (nerfacto's interlevel loss fits them to the field's weights); otherwise that fitting loss
+        # pulls on every sensor's extrinsic and time offset, and their backward computes a position gradient that is
+        # ~40 % of a ``moisst`` step (docs/benchmarks.md). The field's samples keep their gradient.
+        self.density_fns = [_detached_positions(fn) for fn in self.density_fns]
         self._step = 0
         # With a LiDAR as the reference sensor no camera's poses are known: no camera rays can build the scene alone,
         # so the detached registration phase is skipped and every sensor trains jointly (the paper's schedule).
@@ -178,7 +167,7 @@ class MoisstModel(NerfactoModel):
     def _mask_levels(self, module: HashEncoding, inputs, output: Tensor) -> Tensor:
         if self._c2f_progress is None:
             return output
-        weights = hash_level_weights(self._c2f_progress, module.num_levels, self.config.coarse_to_fine_start_levels)
+        weights = hash_level_weights(self._c2f_progress, module.num_levels, COARSE_TO_FINE_START_LEVELS)
         return output * weights.to(output).repeat_interleave(module.features_per_level)
 
     def _update_schedule(self, step: int) -> None:
@@ -225,7 +214,7 @@ class MoisstModel(NerfactoModel):
     def _compile_hash_grid(self, steps: int) -> None:
         """Compile the torch hash grids for a run of ``steps`` steps (``compile_hash_grid``); say so in one line."""
         mode = self.config.compile_hash_grid
-        if mode == "off" or (mode == "auto" and (steps < self.config.compile_min_steps or self.device.type != "cpu")):
+        if mode == "off" or (mode == "auto" and (steps < COMPILE_MIN_STEPS or self.device.type != "cpu")):
             return
         from moisst_ns.compiled_grid import compile_hash_encodings
 
@@ -261,8 +250,7 @@ class MoisstModel(NerfactoModel):
         """Append the current estimate of every non-reference sensor to the history CSV."""
         summary = self.camera_optimizer.sensor_summary()
         self.calibration.update(summary)
-        if self.config.print_calibration:
-            CONSOLE.print(f"[calibration] step {step}: " + " | ".join(self.camera_optimizer.change_summary()))
+        CONSOLE.print(f"[calibration] step {step}: " + " | ".join(self.camera_optimizer.change_summary()))
         if not hasattr(self, "_log_start"):
             self._log_start = time.perf_counter()
         append_history(path, step, {n: dict(v, elapsed_s=time.perf_counter() - self._log_start) for n, v in summary.items()})

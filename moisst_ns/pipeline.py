@@ -81,7 +81,7 @@ class MoisstPipeline(VanillaPipeline):
         better), ``summary.json``, the report and the verdicts, into ``run.out``."""
         from moisst_ns.rig.calibration import calibration_report_errors
         from moisst_ns.stages.drive_observability import drive_json
-        from moisst_ns.uncertainty import UncertaintyConfig, assess_run
+        from moisst_ns.uncertainty import assess_run
 
         run, wall = self.stage_run, time.time() - self._started
         out, truth, rig = run.out, run.truth, run.rig
@@ -121,7 +121,7 @@ class MoisstPipeline(VanillaPipeline):
                                               for n, e in run.cameras["sensors"].items()}
         held = {"sensors": {n: e for n, e in run.held.items() if n in run.frozen}} if run.frozen else None
         final, summary["trust"], lines = assess_run(self, estimate, held, run.drive, moving, summary.get("hit_bounds", {}),
-                                                    UncertaintyConfig(seed=run.seed) if self.config.uncertainty else None)
+                                                    run.seed if self.config.uncertainty else None)
         summary["drive_observability"] = drive_json(run.drive)
         print("\n".join(lines))
         final.write(out / "calibration.json")

@@ -14,17 +14,9 @@ Writes into ``DIR`` (default ``RUN/report``):
   ``weak`` / ``reason`` / ``uncertainty`` of calibration.json).
 * ``report.json``: the verdicts and the renders' depth statistics, for scripts.
 
-Projection (``project_points``): a LiDAR frame stamped ``t_L`` with per-point times ``tau`` is moved to the world
-with the rig's pose model, ``world_T_L = T_r(t_L + tau + delta_L) @ ref_T_L``, then into the camera frame of a
-camera frame stamped ``t_C`` (``world_T_C = T_r(t_C + delta_C) @ ref_T_C``) and projected with the camera's
-intrinsics (OpenCV axes, OpenCV distortion as nerfstudio uses it). For each camera frame the LiDAR frame nearest in
-reference-clock time (with the calibrated offsets) is used, the same scan in both panels.
-
-Pixel convention (the rig format's, nerfstudio's): ``u = fx x / z + cx`` is a continuous coordinate measured from
-the image's left edge, so pixel column ``i`` covers ``[i, i + 1)`` and its centre is at ``i + 0.5``; a point is in
-the image when ``0 <= u < w`` and ``0 <= v < h``, and is drawn into pixel ``(floor(u), floor(v))``.
-
-``project_points`` and the drawing helpers do not import nerfstudio; ``write_report`` does.
+Poses and scans: ``report_views`` (each point at its own time with the rig's pose model; per camera frame the LiDAR
+frame nearest in reference-clock time, the same scan in both panels); projection and pixel convention:
+``report_images.project_points``.
 """
 
 from __future__ import annotations
@@ -37,7 +29,6 @@ import numpy as np
 
 from moisst_ns.report_images import COLORMAP
 from moisst_ns.report_views import make_overlays, make_renders
-
 
 
 def convergence_plots(history: Dict[str, Dict[str, np.ndarray]], truth: Optional[Dict[str, Dict[str, float]]], out_dir: Path) -> Dict[str, str]:

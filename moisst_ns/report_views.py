@@ -32,29 +32,33 @@ def lidar_points_world(calib, sensor: int, stamp_rel: float, points: np.ndarray,
     Returns:
         (N, 3) world points, metres, float64.
     """
-    import torch
-
-    fn = calib.prior_sensor_poses if prior else calib.sensor_poses
-    device = calib.prior_extrinsics.device
     stamps = np.full(1, stamp_rel) if times is None else stamp_rel + np.asarray(times, dtype=np.float64)
-    with torch.no_grad():
-        stamp_t = torch.as_tensor(stamps, dtype=torch.float64, device=device)
-        poses = fn(torch.full(stamp_t.shape, sensor, dtype=torch.long, device=device), stamp_t).cpu().numpy()
+    poses = sensor_poses(calib, sensor, stamps, prior)
     pts = np.asarray(points, dtype=np.float64)
     if times is None:
         return pts @ poses[0, :3, :3].T + poses[0, :3, 3]
     return np.einsum("nij,nj->ni", poses[:, :3, :3], pts) + poses[:, :3, 3]
 
 
-def sensor_pose(calib, sensor: int, stamp_rel: float, prior: bool) -> np.ndarray:
-    """``world_T_sensor`` (4x4, metres) of one frame with the calibration (or the priors)."""
+def sensor_poses(calib, sensor: int, stamps_rel: np.ndarray, prior: bool) -> np.ndarray:
+    """(N, 4, 4) ``world_T_sensor`` (metres) of one sensor at own-clock times minus ``t0``, with the calibration (or
+    the priors)."""
     import torch
 
     fn = calib.prior_sensor_poses if prior else calib.sensor_poses
     device = calib.prior_extrinsics.device
     with torch.no_grad():
-        pose = fn(torch.tensor([sensor], device=device), torch.tensor([stamp_rel], dtype=torch.float64, device=device))
-    return pose[0].cpu().numpy()
+        stamps = torch.as_tensor(stamps_rel, dtype=torch.float64, device=device)
+        return fn(torch.full(stamps.shape, sensor, dtype=torch.long, device=device), stamps).cpu().numpy()
+
+
+def project_scans(calib, scans, camera: int, stamp_rel: float, intrinsics, prior: bool):
+    """Every scan of ``_scans`` projected into a camera frame (sensor ``camera`` at ``stamp_rel``): concatenated
+    ``report_images.project_points`` outputs (uv, z, mask)."""
+    cam_pose = sensor_poses(calib, camera, np.full(1, stamp_rel), prior)[0]
+    parts = [project_points(lidar_points_world(calib, lidar, t_lidar, points, times, prior), cam_pose, intrinsics)
+             for _, _, lidar, t_lidar, points, times in scans]
+    return tuple(np.concatenate(p) for p in zip(*parts))
 
 
 def nearest_lidar_frames(rig, calib, camera: str, stamp: float) -> List[Tuple[str, Any]]:
@@ -138,15 +142,8 @@ def make_overlays(rig, calib, out_dir: Path, frames_per_camera: int, min_range: 
             t_cam = frame.timestamp - calib.data.t0
             scans = list(_scans(rig, calib, camera, frame.timestamp, min_range, max_range))
             used = [f"{lidar} {Path(lframe.file_path).name}" for lidar, lframe, *_ in scans]
-            panels, counts, projected = {}, {}, {}
-            for mode in ("prior", "calibrated"):
-                prior = mode == "prior"
-                cam_pose = sensor_pose(calib, names.index(camera), t_cam, prior)
-                uvs, zs, masks = [], [], []
-                for _, _, lidx, t_lidar, points, times in scans:
-                    uv, z, mask = project_points(lidar_points_world(calib, lidx, t_lidar, points, times, prior), cam_pose, intr)
-                    uvs.append(uv), zs.append(z), masks.append(mask)
-                projected[mode] = (np.concatenate(uvs), np.concatenate(zs), np.concatenate(masks))
+            panels, counts = {}, {}
+            projected = {mode: project_scans(calib, scans, names.index(camera), t_cam, intr, mode == "prior") for mode in ("prior", "calibrated")}
             vmin, vmax = depth_range(*(z[m] for _, z, m in projected.values()))
             radius = max(0, round(image.shape[1] / 640))
             files = {}
@@ -210,12 +207,8 @@ def make_renders(rig, pipeline, out_dir: Path, render_width: int, min_range: flo
             small = {"fl_x": float(cameras.fx), "fl_y": float(cameras.fy), "cx": float(cameras.cx), "cy": float(cameras.cy),
                      "w": int(cameras.width), "h": int(cameras.height)}
             small.update({k: intr.get(k, 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")})
-            cam_pose = sensor_pose(calib, names.index(camera), t_cam, prior=False)
-            uvs, zs, masks = [], [], []
-            for _, _, lidx, t_lidar, points, times in _scans(rig, calib, camera, frame.timestamp, min_range, max_range):
-                uv, z, mask = project_points(lidar_points_world(calib, lidx, t_lidar, points, times, prior=False), cam_pose, small)
-                uvs.append(uv), zs.append(z), masks.append(mask)
-            uv, z, mask = np.concatenate(uvs), np.concatenate(zs), np.concatenate(masks)
+            scans = _scans(rig, calib, camera, frame.timestamp, min_range, max_range)
+            uv, z, mask = project_scans(calib, scans, names.index(camera), t_cam, small, prior=False)
             vmin, vmax = depth_range(z[mask])
             stem = out_dir / "renders" / f"{camera}_{rig.frames_of(camera).index(frame):04d}"
             files = {

@@ -7,7 +7,7 @@ with respect to the sensor's 7 parameters by central finite differences (re-posi
 frames as clusters (pixels of one frame share the scene's errors). The same pixels rendered with that sensor's
 correction set to zero give the loss at the prior: a calibration that does not beat its prior there is not trusted.
 
-Cost: ``2 x 7 + 2`` renders of ``rays_per_sensor`` rays per camera (a few seconds each on a CPU for 1024 rays).
+Cost: ``2 x 7 + 2`` renders of ``RAYS_PER_SENSOR`` rays per camera (a few seconds each on a CPU for 1024 rays).
 """
 
 from __future__ import annotations
@@ -24,18 +24,10 @@ from moisst_ns.stages.uncertainty_math import inherited_sigma, least_squares_sig
 FD_STEPS = (0.002, 0.002, 0.002, np.deg2rad(0.02), np.deg2rad(0.02), np.deg2rad(0.02), 0.0005)
 """Finite-difference half-steps: 2 mm, 0.02 deg, 0.5 ms (a tenth of a pixel's footprint at 10 m for a 320-pixel
 camera: small against the calibration's errors, large against float32 rendering noise)."""
-
-
-@dataclass
-class UncertaintyConfig:
-    """Settings of the held-back uncertainty pass."""
-
-    rays_per_sensor: int = 1024
-    """Pixels per camera, spread evenly over its frames."""
-    chunk: int = 4096
-    """Rays rendered per forward pass."""
-    seed: int = 0
-    """Seed of the pixel draw (independent of training's)."""
+RAYS_PER_SENSOR = 1024
+"""Pixels per camera, spread evenly over its frames."""
+CHUNK = 4096
+"""Rays rendered per forward pass."""
 
 
 @dataclass
@@ -85,25 +77,25 @@ def _ray_generator(datamanager):
 
 
 @torch.no_grad()
-def _render(model, datamanager, indices: torch.Tensor, chunk: int) -> torch.Tensor:
+def _render(model, datamanager, indices: torch.Tensor) -> torch.Tensor:
     """Colours of the pixels ``indices`` at the current calibration (eval mode: the caller re-poses the rays)."""
     out = []
     generator = _ray_generator(datamanager)
-    for start in range(0, len(indices), chunk):
-        bundle = generator(indices[start:start + chunk].to(model.device))
+    for start in range(0, len(indices), CHUNK):
+        bundle = generator(indices[start:start + CHUNK].to(model.device))
         model.camera_optimizer.apply_to_raybundle(bundle)
         out.append(model(bundle)["rgb"].float().cpu())
     return torch.cat(out)
 
 
 @torch.no_grad()
-def sensor_uncertainty(pipeline, sensor: int, config: UncertaintyConfig) -> Optional[SensorUncertainty]:
+def sensor_uncertainty(pipeline, sensor: int, seed: int) -> Optional[SensorUncertainty]:
     """Standard deviations and held-back losses of camera ``sensor`` (None when it has no training frame).
 
     Args:
         pipeline: the trained pipeline (its model is put in eval mode and back).
         sensor: sensor index in the rig.
-        config: pixel count, chunk, seed.
+        seed: seed of the pixel draw (independent of training's).
 
     Returns:
         ``SensorUncertainty`` or None.
@@ -114,25 +106,25 @@ def sensor_uncertainty(pipeline, sensor: int, config: UncertaintyConfig) -> Opti
     frames = torch.nonzero(model.camera_optimizer.frame_sensor.cpu() == sensor)[:, 0].tolist()
     if not frames:
         return None
-    generator = torch.Generator().manual_seed(config.seed * 1000 + sensor)
-    indices, target = _draw_pixels(datamanager, frames, config.rays_per_sensor, generator)
+    generator = torch.Generator().manual_seed(seed * 1000 + sensor)
+    indices, target = _draw_pixels(datamanager, frames, RAYS_PER_SENSOR, generator)
     was_training = model.training
     model.eval()
     try:
-        base = _render(model, datamanager, indices, config.chunk)
+        base = _render(model, datamanager, indices)
         columns = []
         for (param, at), h in zip(_param_views(rig, sensor), FD_STEPS):
             value = float(param[at])
             param[at] = value + h
-            plus = _render(model, datamanager, indices, config.chunk)
+            plus = _render(model, datamanager, indices)
             param[at] = value - h
-            minus = _render(model, datamanager, indices, config.chunk)
+            minus = _render(model, datamanager, indices)
             param[at] = value
             columns.append(((plus - minus) / (2 * h)).reshape(-1).numpy())
         saved = [(param, at, float(param[at])) for param, at in _param_views(rig, sensor)]
         for param, at, _ in saved:
             param[at] = 0.0
-        at_prior = _render(model, datamanager, indices, config.chunk)
+        at_prior = _render(model, datamanager, indices)
         for param, at, value in saved:
             param[at] = value
     finally:
@@ -145,12 +137,12 @@ def sensor_uncertainty(pipeline, sensor: int, config: UncertaintyConfig) -> Opti
         loss_prior=float(((at_prior - target) ** 2).mean()), rays=len(indices), frames=len(frames), wall_s=time.time() - start)
 
 
-def nerf_uncertainties(pipeline, config: UncertaintyConfig) -> Dict[str, SensorUncertainty]:
+def nerf_uncertainties(pipeline, seed: int) -> Dict[str, SensorUncertainty]:
     """``sensor_uncertainty`` of every trainable camera of the run's rig (frozen and reference sensors skipped).
 
     Args:
         pipeline: the trained pipeline.
-        config: settings.
+        seed: seed of the pixel draws.
 
     Returns:
         ``{sensor name: SensorUncertainty}``.
@@ -160,7 +152,7 @@ def nerf_uncertainties(pipeline, config: UncertaintyConfig) -> Dict[str, SensorU
     for i, name in enumerate(rig.data.sensor_names):
         if not bool(rig.trainable[i]) or rig.data.sensor_types[i] != "camera":
             continue
-        found = sensor_uncertainty(pipeline, i, config)
+        found = sensor_uncertainty(pipeline, i, seed)
         if found is not None:
             out[name] = found
     return out
@@ -187,7 +179,7 @@ def _lidar_stage_sigma(entry: dict):
 
 
 def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: Dict[str, str], hit: Dict[str, list],
-               config: Optional[UncertaintyConfig]):
+               seed: Optional[int]):
     """Sigma, weak parameters and verdict of every non-reference sensor; the prior replaces any estimate that the
     held-back loss says is no better than it. A camera of a rig whose LiDARs the LiDAR-first stage placed inherits
     their sigma too (``uncertainty_math.inherited_sigma``; variances added): its registration and the scene rest on
@@ -201,7 +193,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         drive: ``stages.drive_observability.analyse_rig_drive`` results.
         moving: sensors still moving (name -> spread).
         hit: sensors that ran into a bound (name -> bounds).
-        config: settings of the held-back pass; None skips it (no sigma for the NeRF's sensors).
+        seed: seed of the held-back pass's pixel draws; None skips it (no sigma for the NeRF's sensors).
 
     Returns:
         ``(calibration with trust fields, JSON-ready per-sensor record, lines to print)``.
@@ -215,7 +207,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
 
     rig = pipeline.model.camera_optimizer.rig
     dataset_prior = prior_calibration(rig.data)
-    measured = nerf_uncertainties(pipeline, config) if config is not None else {}
+    measured = nerf_uncertainties(pipeline, seed) if seed is not None else {}
     final = Calibration(estimate.reference_sensor, dict(estimate.T_ref_sensor), dict(estimate.time_offset), {})
     drive_weak = {r.sensor: r.weak for r in drive}
     record, lines = {}, []

@@ -22,7 +22,7 @@ from moisst_ns.cli import evaluate, export
 from moisst_ns.cli.calibrate import CalibrateConfig, run_calibration
 from moisst_ns.report import write_report
 from moisst_ns.report_images import draw_points, project_points
-from moisst_ns.report_views import lidar_points_world, nearest_lidar_frames, sensor_pose
+from moisst_ns.report_views import lidar_points_world, nearest_lidar_frames, sensor_poses
 from moisst_ns.rig.format import RigFormatError, load_calibration, load_lidar_scan, load_rig
 from moisst_ns.datasets.synth import SynthConfig, build_scene, make_path, make_rig
 
@@ -367,7 +367,7 @@ def test_lidar_points_with_the_true_calibration_land_on_the_camera_surfaces(tiny
             points, times, _ = load_lidar_scan(rig.root / lidar_frame.file_path)
             assert times is not None
             world = lidar_points_world(rig_calib, names.index(lidar), lidar_frame.timestamp - data.t0, points, times, prior=True)
-            pose = sensor_pose(rig_calib, names.index(camera), frame.timestamp - data.t0, prior=True)
+            pose = sensor_poses(rig_calib, names.index(camera), np.full(1, frame.timestamp - data.t0), prior=True)[0]
             uv, depth, mask = project_points(world, pose, intr)
             assert mask.sum() > 1000
             rays = np.stack([(uv[mask, 0] - intr["cx"]) / intr["fl_x"], (uv[mask, 1] - intr["cy"]) / intr["fl_y"], np.ones(mask.sum())], -1)

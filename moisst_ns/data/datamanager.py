@@ -9,7 +9,7 @@ is the measured range (``batch["lidar_range"]``, model units).
 
 from __future__ import annotations
 
-import os
+import warnings
 from dataclasses import dataclass, field
 from typing import Dict, Tuple, Type
 
@@ -20,13 +20,17 @@ from torch import Tensor
 
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
-from nerfstudio.data.utils.dataloaders import CacheDataloader, FixedIndicesEvalDataloader, RandIndicesEvalDataloader
-from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from moisst_ns.data.layout import RayLayout
 from moisst_ns.rig.format import Rig, RigFormatError, load_lidar_scan
 from moisst_ns.rig.geometry import row_time
+
+REGISTRATION_REFERENCE_FRACTION = 0.5
+"""Share of camera rays from the reference camera while registering (the others' rays then only move their
+calibration, so the scene keeps being trained by a fair number of rays)."""
+MAP_RANGE_VOXEL = 0.05
+"""Voxel of the LiDAR map behind the range targets (``map_range_sensors``), metres."""
 
 
 @dataclass
@@ -44,47 +48,18 @@ class MoisstDataManagerConfig(VanillaDataManagerConfig):
     """Before this step only the reference camera's images are sampled (the warm-up builds the scene from the
     sensor whose poses are known, with every ray)."""
     registration_steps: int = 0
-    """Until this step, a fixed share of the camera rays comes from the reference camera (see below)."""
-    registration_reference_fraction: float = 0.5
-    """Share of camera rays from the reference camera while registering (the others' rays then only move their
-    calibration, so the scene keeps being trained by a fair number of rays)."""
+    """Until this step, a share ``REGISTRATION_REFERENCE_FRACTION`` of the camera rays comes from the reference camera."""
     lidar_start_step: int = 0
     """LiDAR points are sampled from this step on (set to where the depth loss starts)."""
     patch_fraction: float = 0.25
     """With ``patch_size > 1``: share of the camera rays sampled as P x P patches (the DSSIM and depth-smoothness
     losses of eq. 13 use them); the rest are single pixels spread over the images. All-patch sampling (1.0)
     concentrates the rays on few image locations, which measurably slowed the calibration at 1024 rays."""
-    lidar_reference_view_only: bool = True
-    """Keep only the points inside the reference camera's field of view (by the priors), so LiDAR rays land
-    where the scene is observed by the sensor whose poses are known; a 360 degree scan otherwise mostly hits
-    space no camera constrains. Ignored when the reference sensor is a LiDAR."""
     map_range_sensors: Tuple[str, ...] = ()
     """Cameras whose training rays get a metric range target from the LiDAR map (``batch["map_range"]``, model units,
     NaN where the map has none): the rig's LiDAR scans placed at the prior calibration, seen from each frame at its
     prior pose (``stages.map_range``). Only cameras whose pose is known belong here: the reference camera, cameras
     held at a stage's estimate (``moisst-calibrate`` sets it), every camera at the truth (``moisst-floor``)."""
-    map_range_voxel: float = 0.05
-    """Voxel of the LiDAR map behind the range targets, metres."""
-
-
-def concat_ray_bundles(first: RayBundle, second: RayBundle) -> RayBundle:
-    """Concatenate two flat ray bundles field by field (metadata keys must match)."""
-
-    def cat(a, b):
-        if a is None and b is None:
-            return None
-        return torch.cat([a, b], dim=0)
-
-    return RayBundle(
-        origins=cat(first.origins, second.origins),
-        directions=cat(first.directions, second.directions),
-        pixel_area=cat(first.pixel_area, second.pixel_area),
-        camera_indices=cat(first.camera_indices, second.camera_indices),
-        nears=cat(first.nears, second.nears),
-        fars=cat(first.fars, second.fars),
-        metadata={k: cat(first.metadata[k], second.metadata[k]) for k in first.metadata},
-        times=cat(first.times, second.times),
-    )
 
 
 class MoisstDataManager(VanillaDataManager):
@@ -93,13 +68,17 @@ class MoisstDataManager(VanillaDataManager):
     config: MoisstDataManagerConfig
 
     def __init__(self, config: MoisstDataManagerConfig, *args, **kwargs):
-        super().__init__(config, *args, **kwargs)
+        with warnings.catch_warnings():  # nerfstudio's 4 loader workers never start: CacheDataloader loads with threads
+            warnings.filterwarnings("ignore", message="This DataLoader will create", category=UserWarning)
+            super().__init__(config, *args, **kwargs)
         self.rig = self.train_dataparser_outputs.metadata["moisst_rig"]
         frame_sensor = torch.as_tensor(self.rig.frame_sensor_index)
         self.frame_is_reference = frame_sensor == self.rig.reference_index
         full = self.rig.rig
         self.lidar_points, self.lidar_stamps, self.lidar_sensor = load_lidar_points(self.rig, full, config.lidar_min_range, config.lidar_max_range)
-        if config.lidar_reference_view_only and self.lidar_points.shape[0] > 0:
+        # Only the points inside the reference camera's view (by the priors): LiDAR rays land where the sensor whose
+        # poses are known observes the scene; a 360 degree scan otherwise mostly hits space no camera constrains.
+        if self.lidar_points.shape[0] > 0:
             keep = reference_view_mask(self.rig, full, self.lidar_points, self.lidar_sensor)
             if keep is not None and bool(keep.any()):
                 CONSOLE.print(f"LiDAR: {int(keep.sum())} of {keep.numel()} points inside the reference camera's view")
@@ -133,7 +112,7 @@ class MoisstDataManager(VanillaDataManager):
         unknown = [n for n in names if n not in full.sensors or full.sensors[n].type != "camera"]
         if unknown:
             raise RigFormatError(full.root / "rig.json", "sensors", f"map_range_sensors names no camera of the rig: {unknown}")
-        world = lidar_map(full, Calibration.from_rig(full), self.config.map_range_voxel, self.config.lidar_min_range, log=lambda s: None)
+        world = lidar_map(full, Calibration.from_rig(full), MAP_RANGE_VOXEL, self.config.lidar_min_range, log=lambda s: None)
         points = self.rig.world.points_to_model(torch.from_numpy(world)).numpy()
         cameras = self.train_dataset.cameras
         sensor = [self.rig.sensor_names[i] for i in self.rig.frame_sensor_index]
@@ -183,41 +162,6 @@ class MoisstDataManager(VanillaDataManager):
                 parts.append(sample_images(sampler, image_batch, torch.nonzero(mask)[:, 0], n))
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
-    def loader_workers(self) -> int:
-        """DataLoader workers: nerfstudio's 4 per process, but never more than the cores this process may use
-        (torch warns, and the workers only compete with training, on a 2-core machine)."""
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        return max(1, min(self.world_size * 4, cores))
-
-    def setup_train(self):
-        """nerfstudio's ``VanillaDataManager.setup_train`` with the worker count sized to the machine."""
-        assert self.train_dataset is not None
-        CONSOLE.print("Setting up training dataset...")
-        self.train_image_dataloader = CacheDataloader(
-            self.train_dataset, num_images_to_sample_from=self.config.train_num_images_to_sample_from,
-            num_times_to_repeat_images=self.config.train_num_times_to_repeat_images, device=self.device,
-            num_workers=self.loader_workers(), pin_memory=True, collate_fn=self.config.collate_fn,
-            exclude_batch_keys_from_device=self.exclude_batch_keys_from_device)
-        self.iter_train_image_dataloader = iter(self.train_image_dataloader)
-        self.train_pixel_sampler = self._get_pixel_sampler(self.train_dataset, self.config.train_num_rays_per_batch)
-        self.train_ray_generator = RayGenerator(self.train_dataset.cameras.to(self.device))
-
-    def setup_eval(self):
-        """nerfstudio's ``VanillaDataManager.setup_eval`` with the worker count sized to the machine."""
-        assert self.eval_dataset is not None
-        CONSOLE.print("Setting up evaluation dataset...")
-        workers = self.loader_workers()
-        self.eval_image_dataloader = CacheDataloader(
-            self.eval_dataset, num_images_to_sample_from=self.config.eval_num_images_to_sample_from,
-            num_times_to_repeat_images=self.config.eval_num_times_to_repeat_images, device=self.device,
-            num_workers=workers, pin_memory=True, collate_fn=self.config.collate_fn,
-            exclude_batch_keys_from_device=self.exclude_batch_keys_from_device)
-        self.iter_eval_image_dataloader = iter(self.eval_image_dataloader)
-        self.eval_pixel_sampler = self._get_pixel_sampler(self.eval_dataset, self.config.eval_num_rays_per_batch)
-        self.eval_ray_generator = RayGenerator(self.eval_dataset.cameras.to(self.device))
-        self.fixed_indices_eval_dataloader = FixedIndicesEvalDataloader(input_dataset=self.eval_dataset, device=self.device, num_workers=workers)
-        self.eval_dataloader = RandIndicesEvalDataloader(input_dataset=self.eval_dataset, device=self.device, num_workers=workers)
-
     @property
     def has_lidar(self) -> bool:
         return self.config.lidar_rays_per_batch > 0 and self.lidar_points.shape[0] > 0
@@ -230,7 +174,7 @@ class MoisstDataManager(VanillaDataManager):
         if step < self.config.reference_only_steps:
             return 1.0
         if step < self.config.registration_steps:
-            return self.config.registration_reference_fraction
+            return REGISTRATION_REFERENCE_FRACTION
         return None
 
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
@@ -263,14 +207,12 @@ class MoisstDataManager(VanillaDataManager):
         if not self.has_lidar or step < self.config.lidar_start_step:
             return ray_bundle, batch
         device = ray_bundle.origins.device
-        ray_bundle.metadata.update(lidar_placeholder(num_camera, device))
         pick = torch.randint(self.lidar_points.shape[0], (self.config.lidar_rays_per_batch,), generator=self.lidar_generator)
         points = self.lidar_points[pick].to(device)
-        lidar = lidar_ray_bundle(points, self.lidar_stamps[pick].to(device), self.lidar_sensor[pick].to(device), ray_bundle)
         batch["lidar_range"] = points.norm(dim=-1) * float(self.rig.world.scale)
         batch["lidar_sensor"] = self.lidar_sensor[pick].to(device)
         batch["ray_layout"] = RayLayout(num_camera, len(pick), layout.num_patch, layout.patch_size)
-        return concat_ray_bundles(ray_bundle, lidar), batch
+        return with_lidar_rays(ray_bundle, points, self.lidar_stamps[pick].to(device), batch["lidar_sensor"]), batch
 
 
 def frame_readouts(rig, full: Rig, cameras) -> Tuple[Tensor | None, Tensor | None]:
@@ -308,39 +250,23 @@ def sample_images(sampler, image_batch: Dict, positions: Tensor, count: int) -> 
     return out
 
 
-def lidar_placeholder(num: int, device) -> Dict[str, Tensor]:
-    """Metadata columns of camera rays so they concatenate with LiDAR rays."""
-    return {
-        "is_lidar": torch.zeros(num, 1, dtype=torch.bool, device=device),
-        "lidar_point": torch.zeros(num, 3, device=device),
-        "lidar_stamp": torch.zeros(num, 1, dtype=torch.float64, device=device),
-        "lidar_sensor": torch.zeros(num, 1, dtype=torch.long, device=device),
-    }
-
-
-def lidar_ray_bundle(
-    points: Float[Tensor, "num 3"], stamps: Float[Tensor, "num"], sensor: Tensor, like: RayBundle
-) -> RayBundle:
-    """LiDAR rays whose geometry is filled in by the calibration optimiser (placeholders here)."""
+def with_lidar_rays(camera: RayBundle, points: Float[Tensor, "num 3"], stamps: Float[Tensor, "num"], sensor: Tensor) -> RayBundle:
+    """``camera``'s rays followed by LiDAR rays through ``points`` (LiDAR frame), whose origins and directions the
+    calibration optimiser rebuilds; every other field of a LiDAR ray is a placeholder (0; ``directions_norm`` 1;
+    ``pixel_area`` the camera rays' mean) and the camera rays get zero LiDAR columns."""
     num = points.shape[0]
-    metadata = {
-        "is_lidar": torch.ones(num, 1, dtype=torch.bool, device=points.device),
-        "lidar_point": points,
-        "lidar_stamp": stamps[:, None],
-        "lidar_sensor": sensor[:, None],
-    }
-    for key, value in like.metadata.items():
-        if key not in metadata:
-            metadata[key] = torch.ones(num, *value.shape[1:], dtype=value.dtype, device=value.device) if key == "directions_norm" else torch.zeros(num, *value.shape[1:], dtype=value.dtype, device=value.device)
+
+    def rows(value, fill=0.0):  # ``value`` followed by ``num`` rows of ``fill``
+        return None if value is None else torch.cat([value, torch.full((num, *value.shape[1:]), fill, dtype=value.dtype, device=value.device)])
+
+    lidar = {"is_lidar": torch.ones(num, 1, dtype=torch.bool, device=points.device), "lidar_point": points,
+             "lidar_stamp": stamps[:, None], "lidar_sensor": sensor[:, None]}
+    metadata = {k: rows(v, 1.0 if k == "directions_norm" else 0.0) for k, v in camera.metadata.items()}
+    metadata.update({k: torch.cat([v.new_zeros((len(camera), *v.shape[1:])), v]) for k, v in lidar.items()})
     return RayBundle(
-        origins=torch.zeros(num, 3, device=points.device),
-        directions=points / points.norm(dim=-1, keepdim=True),
-        pixel_area=torch.full((num, 1), float(like.pixel_area.mean()), device=points.device),
-        camera_indices=torch.zeros(num, 1, dtype=torch.long, device=points.device),
-        nears=None if like.nears is None else torch.zeros(num, 1, device=points.device),
-        fars=None if like.fars is None else torch.zeros(num, 1, device=points.device),
-        metadata=metadata,
-        times=None if like.times is None else torch.zeros(num, 1, device=points.device),
+        origins=rows(camera.origins), directions=torch.cat([camera.directions, points / points.norm(dim=-1, keepdim=True)]),
+        pixel_area=rows(camera.pixel_area, float(camera.pixel_area.mean())), camera_indices=rows(camera.camera_indices),
+        nears=rows(camera.nears), fars=rows(camera.fars), metadata=metadata, times=rows(camera.times),
     )
 
 

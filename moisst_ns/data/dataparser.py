@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional, Type
+from typing import Optional, Type
 
 import numpy as np
 import torch
@@ -24,6 +24,10 @@ from moisst_ns.rig.calibration import RigCalibration, RigData
 from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration, load_rig
 from moisst_ns.rig.world import WorldFrame
 
+TRAJECTORY_EXTENT = 0.5
+"""The reference trajectory's half extent (largest axis) is scaled to this many model units."""
+EVAL_EVERY = 10
+"""Eval frames: every ``EVAL_EVERY``-th camera frame (they stay in the training set too: calibration uses all data)."""
 
 
 @dataclass
@@ -33,15 +37,6 @@ class MoisstRigDataParserConfig(DataParserConfig):
     _target: Type = field(default_factory=lambda: MoisstRigDataParser)
     data: Path = Path("data/rig")
     """Dataset folder holding rig.json."""
-    trajectory_extent: float = 0.5
-    """The reference trajectory's half extent (largest axis) is scaled to this many model units."""
-    eval_mode: Literal["every-nth", "none"] = "every-nth"
-    """Eval frames: every ``eval_every``-th camera frame (they stay in the training set too: calibration uses all
-    data), or none."""
-    eval_every: int = 10
-    """See ``eval_mode``."""
-    load_ground_truth: bool = True
-    """Read ``ground_truth.json`` beside rig.json when present, for error metrics only (never optimised)."""
     prior_calibration: Optional[Path] = None
     """A calibration.json whose sensors replace rig.json's priors (e.g. the LiDAR-first stage's estimate, so the
     NeRF starts from it); rig.json itself is never modified."""
@@ -79,8 +74,8 @@ class MoisstRigDataParser(DataParser):
         if self.config.prior_calibration is not None:
             dataset_priors = Calibration.from_rig(rig)
             apply_prior_calibration(rig, load_calibration(self.config.prior_calibration), self.config.prior_calibration)
-        gt_file = rig.root / "ground_truth.json"
-        truth = load_calibration(gt_file) if self.config.load_ground_truth and gt_file.is_file() else None
+        gt_file = rig.root / "ground_truth.json"  # for error metrics only (never optimised)
+        truth = load_calibration(gt_file) if gt_file.is_file() else None
         if truth is not None:
             missing = sorted(set(rig.sensors) - set(truth.T_ref_sensor))
             if missing or truth.reference_sensor != rig.reference_sensor:
@@ -89,14 +84,14 @@ class MoisstRigDataParser(DataParser):
         data.dataset_priors = dataset_priors
 
         # Normalisation: world_model = scale * (world - center); no rotation, so extrinsics keep their axes.
-        world = WorldFrame.fit(rig.trajectory_positions, self.config.trajectory_extent)
+        world = WorldFrame.fit(rig.trajectory_positions, TRAJECTORY_EXTENT)
         center, scale = world.center, world.scale
 
         camera_frames = [i for i, f in enumerate(rig.frames) if rig.sensors[f.sensor].type == "camera"]
         if not camera_frames:
             raise RigFormatError(rig.root / "rig.json", "frames", "no camera frames (MOISST needs at least one camera)")
-        if split != "train" and self.config.eval_mode == "every-nth":
-            camera_frames = camera_frames[:: self.config.eval_every]
+        if split != "train":
+            camera_frames = camera_frames[::EVAL_EVERY]
 
         frames = [rig.frames[i] for i in camera_frames]
         sensor_idx = torch.tensor([data.sensor_names.index(f.sensor) for f in frames])
