@@ -107,7 +107,7 @@ def prepare_stages(pipeline, out: Path, seed: int, resume_from: Optional[Path]) 
     (a run resumed from the run folder ``resume_from`` loads those cached in ``out`` or there), apply their estimate to
     ``pipeline`` (``apply_stage_results``), then seed again: the NeRF starts as if no stage had drawn a number."""
     from moisst_ns.rig.format import Calibration, load_calibration, load_rig
-    from moisst_ns.stages.drive_observability import analyse_rig_drive, drive_table
+    from moisst_ns.stages.trust.drive_observability import analyse_rig_drive, drive_table
 
     dataparser = pipeline.datamanager.dataparser
     dataparser.data = Path(pipeline.datamanager.data or dataparser.data)  # as the datamanager will
@@ -168,8 +168,8 @@ def apply_stage_results(pipeline, run: StageRun) -> None:
 
 def run_lidar_first(rig, prior, truth, out: Path, options: dict) -> Optional[dict]:
     """The LiDAR-first stage into ``out/lidar_first`` when the rig has a non-reference LiDAR; its summary, or None."""
-    from moisst_ns.stages.lidar_first import LidarFirstConfig, LidarFirstError, calibrate_lidars, lidar_sensors
-    from moisst_ns.stages.lidar_report import write_stage_outputs
+    from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, LidarFirstError, calibrate_lidars, lidar_sensors
+    from moisst_ns.stages.lidar.lidar_report import write_stage_outputs
 
     if not lidar_sensors(rig):
         return None
@@ -198,9 +198,9 @@ def run_camera_registration(rig, lidar_stage: Optional[dict], truth, out: Path, 
     map: a LiDAR (calibrated by the LiDAR-first stage, or the reference) or, without one, the reference camera's
     triangulated features; its summary, or None (no map: the NeRF calibrates the cameras)."""
     from moisst_ns.rig.format import Calibration, load_calibration
-    from moisst_ns.stages.camera_registration import CameraRegistrationConfig, camera_sensors, register_cameras
-    from moisst_ns.stages.camera_report import write_stage_outputs
-    from moisst_ns.stages.lidar_map import CameraStageError, NoMapError
+    from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, camera_sensors, register_cameras
+    from moisst_ns.stages.camera.camera_report import write_stage_outputs
+    from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError
 
     has_lidar = any(s.type == "lidar" for s in rig.sensors.values())
     if not camera_sensors(rig) or not (has_lidar or rig.sensors[rig.reference_sensor].type == "camera"):

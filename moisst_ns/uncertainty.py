@@ -19,7 +19,7 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
-from moisst_ns.stages.uncertainty_math import inherited_sigma, least_squares_sigma
+from moisst_ns.stages.trust.uncertainty_math import inherited_sigma, least_squares_sigma
 
 FD_STEPS = (0.002, 0.002, 0.002, np.deg2rad(0.02), np.deg2rad(0.02), np.deg2rad(0.02), 0.0005)
 """Finite-difference half-steps: 2 mm, 0.02 deg, 0.5 ms (a tenth of a pixel's footprint at 10 m for a 320-pixel
@@ -200,7 +200,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
     """
     from moisst_ns.rig.format import Calibration
     from moisst_ns.rig.trust import PARAMETERS, UNCONSTRAINED, decide_verdict
-    from moisst_ns.stages.observability import TEST_STEPS, UNITS
+    from moisst_ns.stages.trust.observability import TEST_STEPS, UNITS
 
     start = time.time()
     from moisst_ns.runs.folder import prior_calibration

@@ -19,8 +19,8 @@ import torch
 
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
-from moisst_ns.stages.camera_registration import CameraRegistrationConfig, register_cameras
-from moisst_ns.stages.lidar_first import LidarFirstConfig, calibrate_lidars, lidar_sensors
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, register_cameras
+from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, calibrate_lidars, lidar_sensors
 
 TRUST_ORDER = [3, 4, 5, 0, 1, 2, 6]
 """Solver order (rotation, lever arm, delta) to the trust order (lever arm, rotation, delta)."""

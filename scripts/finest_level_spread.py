@@ -19,10 +19,10 @@ import torch
 
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera_guards import solve, subset
-from moisst_ns.stages.camera_registration import CameraRegistrationConfig, load_camera
-from moisst_ns.stages.lidar_map import lidar_map
-from moisst_ns.stages.photometric import Registration
+from moisst_ns.stages.camera.camera_guards import solve, subset
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, load_camera
+from moisst_ns.stages.camera.lidar_map import lidar_map
+from moisst_ns.stages.camera.photometric import Registration
 from moisst_ns.stages.stage_floor import rig_at
 
 UNITS = np.array([1e3 * 180 / np.pi] * 3 + [1e3] * 3 + [1e3])

@@ -15,7 +15,7 @@ import numpy as np
 
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.lidar_first import LidarFirstConfig, calibrate_lidars
+from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, calibrate_lidars
 
 
 def main() -> None:

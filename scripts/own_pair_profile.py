@@ -16,9 +16,9 @@ import torch
 
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera_registration import CameraRegistrationConfig, load_camera
-from moisst_ns.stages.lidar_map import lidar_map
-from moisst_ns.stages.photometric import Registration, robust_cost
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, load_camera
+from moisst_ns.stages.camera.lidar_map import lidar_map
+from moisst_ns.stages.camera.photometric import Registration, robust_cost
 
 SCANS = ((5, "z", "cm", 100.0, 0.06), (6, "time_offset", "ms", 1000.0, 0.006), (3, "x", "cm", 100.0, 0.06))
 """(solver index, name, unit, unit per SI unit, half range in SI units)."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from moisst_ns.rig.format import load_calibration
 from moisst_ns.rig.trust import PARAMETERS, parameter_difference
-from moisst_ns.stages.camera_guards import convergence_tail
+from moisst_ns.stages.camera.camera_guards import convergence_tail
 
 
 def main() -> None:

@@ -27,7 +27,7 @@ def planar_distance_view(view):
 
     import numpy as np
 
-    from moisst_ns.stages.lidar_map import ImageStack
+    from moisst_ns.stages.camera.lidar_map import ImageStack
 
     stack = view.distance
     frames, h, w = stack.intensity.shape

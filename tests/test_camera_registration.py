@@ -1,4 +1,4 @@
-"""Camera registration against the calibrated LiDAR map (``moisst_ns.stages.camera_registration``)."""
+"""Camera registration against the calibrated LiDAR map (``moisst_ns.stages.camera.camera_registration``)."""
 
 import json
 import shutil
@@ -12,9 +12,9 @@ from moisst_ns.datasets.synth import SynthConfig, make_rig
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera_registration import CameraRegistrationConfig, register_cameras
-from moisst_ns.stages.photometric import CameraModel
-from moisst_ns.stages.lidar_map import CameraStageError, NoMapError, PinholeModel, project, pyramid_factors, visible
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, register_cameras
+from moisst_ns.stages.camera.photometric import CameraModel
+from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, PinholeModel, project, pyramid_factors, visible
 
 
 def test_pyramid_factors():
@@ -174,10 +174,10 @@ def test_bad_input_one_line_errors(rig_folder, tmp_path):
 
 def _feature_start_of(folder, sensor="cam_front_right"):
     """The feature start of ``sensor`` on a rig whose LiDAR is at the truth, and the truth."""
-    from moisst_ns.stages.camera_guards import bounds
-    from moisst_ns.stages.camera_registration import load_camera
-    from moisst_ns.stages.feature_start import FeatureStartConfig, feature_start
-    from moisst_ns.stages.lidar_map import lidar_map
+    from moisst_ns.stages.camera.camera_guards import bounds
+    from moisst_ns.stages.camera.camera_registration import load_camera
+    from moisst_ns.stages.camera.feature_start import FeatureStartConfig, feature_start
+    from moisst_ns.stages.camera.lidar_map import lidar_map
 
     rig, truth, start = lidar_at_truth(folder)
     config = CameraRegistrationConfig()
@@ -195,7 +195,7 @@ def test_feature_start_lands_in_the_basin_from_the_paper_perturbation(rig_folder
     RANSAC over every frame and one reprojection fit: from 8.8 deg / 86.6 cm the start is within 3 deg and 70 cm of the
     truth (measured 2.09 deg / 45 cm on this rig: features fix the rotation, the translation trades against the time
     offset); the side camera, which the reference never overlaps, gets no start."""
-    from moisst_ns.stages.camera_registration import _corrected
+    from moisst_ns.stages.camera.camera_registration import _corrected
 
     found, prior, offset, truth = _feature_start_of(rig_folder)
     assert found.theta is not None and found.frames >= 5 and found.rms_px < 2.0, found.note
@@ -223,10 +223,10 @@ def test_typical_error_significance_tells_the_side_cameras_blind_directions(rig_
     reference camera's view) by a typical prior error raises its held-back cost well beyond three standard errors over
     the frames; the side camera, which pairs almost only with its own frames, does not tell a 10 cm lateral lever arm or
     a 1 deg roll apart (measured 0.4 and 0.4 with own partners 3 m apart, 0.1 and 0.5 at 1.5 m), and an inactive correction is reported as inf."""
-    from moisst_ns.stages.camera_guards import PARAMETERS, typical_error_significance
-    from moisst_ns.stages.camera_registration import load_camera
-    from moisst_ns.stages.lidar_map import lidar_map
-    from moisst_ns.stages.photometric import Registration
+    from moisst_ns.stages.camera.camera_guards import PARAMETERS, typical_error_significance
+    from moisst_ns.stages.camera.camera_registration import load_camera
+    from moisst_ns.stages.camera.lidar_map import lidar_map
+    from moisst_ns.stages.camera.photometric import Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig()
@@ -262,9 +262,9 @@ def test_own_partners_are_farther_apart_at_the_finest_level(rig_folder):
     """A camera's own partner is the nearest frame at least ``own_baseline`` of driving away at the coarse levels and
     at least ``fine_baseline`` at the finest one: every own pair is that far apart, and the nearest pair is less than
     one frame's travel farther (the partner is the first frame past the baseline, not any frame)."""
-    from moisst_ns.stages.camera_registration import load_camera
-    from moisst_ns.stages.lidar_map import lidar_map
-    from moisst_ns.stages.photometric import Registration
+    from moisst_ns.stages.camera.camera_registration import load_camera
+    from moisst_ns.stages.camera.lidar_map import lidar_map
+    from moisst_ns.stages.camera.photometric import Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig(own_baseline=1.5, fine_baseline=3.0)
@@ -287,10 +287,10 @@ def test_the_finest_level_samples_enough_points_that_its_minimum_does_not_hang_o
     residuals): solved from the truth on three independent draws, the side camera's estimates spread less with
     ``fine_points_per_frame`` points per frame than with ``points_per_frame``'s 600, in the time offset and the lever
     arm; and the coarse levels keep ``points_per_frame / factor``."""
-    from moisst_ns.stages.camera_guards import points_per_frame, solve
-    from moisst_ns.stages.camera_registration import load_camera
-    from moisst_ns.stages.lidar_map import lidar_map
-    from moisst_ns.stages.photometric import Registration
+    from moisst_ns.stages.camera.camera_guards import points_per_frame, solve
+    from moisst_ns.stages.camera.camera_registration import load_camera
+    from moisst_ns.stages.camera.lidar_map import lidar_map
+    from moisst_ns.stages.camera.photometric import Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig()
@@ -315,9 +315,9 @@ def test_points_are_drawn_in_proportion_to_the_gradient(rig_folder):
     """Map points are drawn with probability ``|grad I|``: the drawn points' mean squared gradient is within 30 % of
     its expectation under that law over the frame's visible points (``E|g|^3 / E|g|``; drawn without replacement, and
     only points the partner frame also sees pair up: measured within 23 %)."""
-    from moisst_ns.stages.camera_registration import load_camera
-    from moisst_ns.stages.lidar_map import bilinear, lidar_map
-    from moisst_ns.stages.photometric import Registration
+    from moisst_ns.stages.camera.camera_registration import load_camera
+    from moisst_ns.stages.camera.lidar_map import bilinear, lidar_map
+    from moisst_ns.stages.camera.photometric import Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     base = CameraRegistrationConfig()
@@ -344,9 +344,9 @@ def test_the_finest_level_iterates_until_the_projections_stop_moving(rig_folder)
     """The finest level runs up to ``fine_iterations`` outer iterations and stops once one moves the projections by
     less than ``fine_stop_px``; the coarser levels keep ``outer_iterations`` and ``stop_px``: with the finest stop at
     infinity it ends after one iteration, with a stop of 0 it runs all ``fine_iterations``."""
-    from moisst_ns.stages.camera_registration import _descend, load_camera
-    from moisst_ns.stages.lidar_map import lidar_map, pyramid_factors
-    from moisst_ns.stages.photometric import Registration
+    from moisst_ns.stages.camera.camera_registration import _descend, load_camera
+    from moisst_ns.stages.camera.lidar_map import lidar_map, pyramid_factors
+    from moisst_ns.stages.camera.photometric import Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     base = CameraRegistrationConfig(outer_iterations=2, fine_points_per_frame=600)
@@ -394,7 +394,7 @@ def test_stage_floor_and_map_depth(rig_folder):
 
 def test_resolution_spread_is_half_the_change_between_the_two_finest_levels():
     """Exact values: the coarser levels do not count, one level gives no spread."""
-    from moisst_ns.stages.camera_guards import resolution_spread
+    from moisst_ns.stages.camera.camera_guards import resolution_spread
 
     levels = {8: np.full(7, 9.0), 2: np.arange(7.0), 1: np.arange(7.0) + np.r_[0.2, -0.4, 0, 0, 0, 0, 1.0]}
     np.testing.assert_allclose(resolution_spread(levels), [0.1, 0.2, 0, 0, 0, 0, 0.5])
@@ -404,7 +404,7 @@ def test_resolution_spread_is_half_the_change_between_the_two_finest_levels():
 def test_convergence_tail_is_aitkens_remaining_distance_or_the_last_two_steps():
     """Exact values: a geometric descent (ratio 1/2 and -1/2) has its remaining distance, a step that did not shrink
     gives the last two steps, a settled or short history nothing."""
-    from moisst_ns.stages.camera_guards import convergence_tail
+    from moisst_ns.stages.camera.camera_guards import convergence_tail
 
     rows = np.zeros((4, 7))
     rows[:, 0] = [0.0, 8.0, 12.0, 14.0]  # steps 4, 2: 2 more to go
@@ -420,7 +420,7 @@ def test_convergence_tail_is_aitkens_remaining_distance_or_the_last_two_steps():
 def test_patch_points_ring_each_point_in_the_frame_that_sees_it_nearest():
     """Each point is followed by its ring: in the nearest frame that sees it, ``count`` pixels at ``radius`` around
     the point's own pixel at the point's depth; a point no frame sees gets none; ``count=0`` is the bare map."""
-    from moisst_ns.stages.camera_map import patch_points
+    from moisst_ns.stages.camera.camera_map import patch_points
 
     model = PinholeModel(100.0, 80.0, 48.0, 36.0, 96, 72)
     poses = np.stack([np.eye(4), np.eye(4)])

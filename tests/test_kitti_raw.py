@@ -151,7 +151,7 @@ def test_reference_trajectory_is_the_oxts_carried_to_camera_0(full):
 def _placed_scans(rig, clockwise: bool):
     """Every Velodyne scan (points beyond 3 m) placed in the world at the factory calibration, eq. 1-2 per point."""
     from moisst_ns.rig.geometry import ReferenceTrajectory
-    from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, place_points
+    from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, PointTimes, place_points
 
     traj, T = ReferenceTrajectory.of(rig), rig.sensors["velodyne"].T_ref_sensor
     ext = Extrinsic(T[:3, :3], T[:3, 3], 0.0)

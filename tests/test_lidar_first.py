@@ -17,9 +17,9 @@ from moisst_ns.cli.lidar_calibrate import LidarCalibrateConfig, run_lidar_calibr
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import load_calibration, load_lidar_scan, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, interpolate_trajectory
-from moisst_ns.stages.lidar_first import Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, calibrate_lidars, consistency_residuals
-from moisst_ns.stages.lidar_geometry import Extrinsic, place_points, placement_jacobian
-from moisst_ns.stages.observability import PARAMETERS, analyse_observability
+from moisst_ns.stages.lidar.lidar_first import Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, calibrate_lidars, consistency_residuals
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, place_points, placement_jacobian
+from moisst_ns.stages.trust.observability import PARAMETERS, analyse_observability
 from moisst_ns.datasets.synth import SynthConfig, build_scene, make_rig
 from helpers import scene_distance, tree_hash
 
@@ -335,7 +335,7 @@ def test_release_check_flags_a_wrong_held_time_offset(tiny_rigs):
     import dataclasses
 
     from moisst_ns.rig.trust import parameter_difference
-    from moisst_ns.stages.lidar_first import LidarFirstConfig, calibrate_lidar
+    from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, calibrate_lidar
 
     rig = load_rig(tiny_rigs["raw"])
     truth = load_calibration(rig.root / "ground_truth.json")
@@ -368,7 +368,7 @@ def calibration_report_errors_of(result, truth):
 def test_split_half_spread_exact_values():
     """Half the difference of the two halves' fits, each half fitted on the pairs wholly inside it; NaN (not measured)
     when a half has no pair or cannot be fitted."""
-    from moisst_ns.stages.lidar_first import split_half_spread
+    from moisst_ns.stages.lidar.lidar_first import split_half_spread
 
     pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [1, 4]])
     seen = []
@@ -390,7 +390,7 @@ def test_split_half_sigma_covers_a_short_drive_the_formal_sigma_does_not(tiny_ri
     centimetres to decimetres off with a formal sigma many times smaller; the halves of the drive disagree by as much,
     so every parameter's error is within 3x the larger of the two sigmas."""
     from moisst_ns.rig.trust import parameter_difference
-    from moisst_ns.stages.lidar_first import calibrate_lidar
+    from moisst_ns.stages.lidar.lidar_first import calibrate_lidar
 
     short = copy_rig(tiny_rigs["raw"], tmp_path / "short")
     keep = tuple(f"{k:06d}.npz" for k in range(6))
@@ -413,7 +413,7 @@ def test_a_straight_drive_keeps_at_the_prior_what_it_does_not_determine(tmp_path
     the drive does determine, move from 4.8 deg to under 0.06 deg; the LiDAR ends no farther from the truth than its
     prior in translation, rotation and time."""
     from moisst_ns.rig.trust import parameter_difference
-    from moisst_ns.stages.lidar_first import calibrate_lidar
+    from moisst_ns.stages.lidar.lidar_first import calibrate_lidar
 
     rig = load_rig(make_rig(SynthConfig(out=tmp_path / "straight", seed=3, perturb="paper", drive="straight", **TINY)))
     truth = load_calibration(rig.root / "ground_truth.json")
@@ -434,7 +434,7 @@ def test_a_straight_drive_keeps_at_the_prior_what_it_does_not_determine(tmp_path
 def test_prior_residuals_are_the_distance_to_the_prior_in_sigmas_with_an_exact_jacobian():
     """``prior_residuals``: zero at the prior, ``(Log(R_p^T R), t - t_p, delta - delta_p) / sigma`` away from it, and a
     Jacobian that matches central differences to 1e-8 at a rotation 20 deg from the prior."""
-    from moisst_ns.stages.lidar_geometry import Extrinsic, prior_residuals
+    from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, prior_residuals
 
     rng = np.random.default_rng(0)
     sigma = np.array([0.17] * 3 + [1.0] * 3 + [0.1])

@@ -17,17 +17,17 @@ from scipy.spatial.transform import Rotation
 from moisst_ns.datasets.synth import SynthConfig, make_rig
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.lidar_first import (
+from moisst_ns.stages.lidar.lidar_first import (
     LidarFirstConfig,
     SharedView,
     load_scans,
     scan_pairs,
 )
-from moisst_ns.stages.lidar_geometry import Extrinsic
-from moisst_ns.stages.lidar_map import CameraStageError
-from moisst_ns.stages.lidar_edges import JUMP, MAX_RING_GAP_DEG, NEIGHBOUR_DEG, depth_edges
-from moisst_ns.stages.lidar_view import GRID, MAX_DISTANCE, REFINEMENTS, edge_distance, search_held, view_residuals
-from moisst_ns.stages.observability import JACOBIAN_ORDER, TEST_STEPS
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic
+from moisst_ns.stages.camera.lidar_map import CameraStageError
+from moisst_ns.stages.lidar.lidar_edges import JUMP, MAX_RING_GAP_DEG, NEIGHBOUR_DEG, depth_edges
+from moisst_ns.stages.lidar.lidar_view import GRID, MAX_DISTANCE, REFINEMENTS, edge_distance, search_held, view_residuals
+from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, TEST_STEPS
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti-raw-2011_09_26_drive_0048"
 DRIVE = "2011_09_26_drive_0048_sync"
@@ -260,8 +260,8 @@ def test_the_stage_report_keeps_what_the_view_placed(synth):
     from types import SimpleNamespace
 
     from moisst_ns.rig.format import Calibration
-    from moisst_ns.stages.lidar_first import LidarFirstResult, LidarResult
-    from moisst_ns.stages.lidar_report import stage_summary
+    from moisst_ns.stages.lidar.lidar_first import LidarFirstResult, LidarResult
+    from moisst_ns.stages.lidar.lidar_report import stage_summary
 
     found, _ = search_from(dict(synth, gt=synth["ext"]), np.r_[0, 0, 0, 0, 0, 0.4, 0], [5])
     ext, calibration = synth["ext"], Calibration.from_rig(synth["rig"])

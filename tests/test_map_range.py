@@ -9,7 +9,7 @@ from moisst_ns.datasets.synth import SynthConfig, make_rig
 from moisst_ns.floor import synthetic_scene
 from moisst_ns.losses import map_range_loss
 from moisst_ns.method_configs import moisst_trainer_config
-from moisst_ns.stages.map_range import opengl_to_opencv, range_image
+from moisst_ns.stages.camera.map_range import opengl_to_opencv, range_image
 
 
 def test_a_point_lands_in_its_pixel_with_its_euclidean_range():

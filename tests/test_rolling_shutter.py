@@ -14,9 +14,9 @@ from moisst_ns.datasets.synth_effects import row_time_offsets
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_time, row_times
-from moisst_ns.stages.camera_registration import CameraRegistrationConfig, register_cameras
-from moisst_ns.stages.lidar_map import PinholeModel
-from moisst_ns.stages.photometric import CameraModel
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, register_cameras
+from moisst_ns.stages.camera.lidar_map import PinholeModel
+from moisst_ns.stages.camera.photometric import CameraModel
 from helpers import planar_distance_view
 
 READOUT = 0.03
@@ -110,9 +110,9 @@ def test_rolling_jacobian_follows_the_row_and_the_readout():
 def test_shared_view_projects_lidar_edges_from_the_rows_pose(rig_folder):
     """The LiDAR stage's shared view: with the reference camera's readout, each LiDAR edge point is seen from the pose
     at its row's time: its edge distance differs from the global shutter's (by tenths of a pixel)."""
-    from moisst_ns.stages.lidar_first import LidarFirstConfig, SharedView, load_scans, scan_pairs
-    from moisst_ns.stages.lidar_geometry import Extrinsic
-    from moisst_ns.stages.lidar_view import view_residuals
+    from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, SharedView, load_scans, scan_pairs
+    from moisst_ns.stages.lidar.lidar_geometry import Extrinsic
+    from moisst_ns.stages.lidar.lidar_view import view_residuals
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     T = np.asarray(truth.T_ref_sensor["lidar"])
@@ -138,7 +138,7 @@ def test_nerf_camera_rays_are_posed_at_their_rows_time(rig_folder):
     (mean error measured 0.41 of 255 with the row times, 2.6 at the stamps), and a map-range frame is seen alike."""
     from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
     from moisst_ns.method_configs import moisst_trainer_config
-    from moisst_ns.stages.map_range import opengl_to_opencv, rolling_camera_points
+    from moisst_ns.stages.camera.map_range import opengl_to_opencv, rolling_camera_points
 
     config = moisst_trainer_config("moisst-lite", 100).pipeline.datamanager
     config.data = config.dataparser.data = rig_folder
@@ -228,9 +228,9 @@ def test_an_estimated_readout_is_an_8th_correction_within_its_bounds(rig_folder)
     """The joint fit itself (one descent, no guards): 8 corrections in the history, the readout's within
     ``[0, 0.999 frame period)`` at every iteration, held where it started at the coarser levels."""
     from moisst_ns.rig.geometry import ReferenceTrajectory as Traj
-    from moisst_ns.stages.camera_registration import _descend, load_camera
-    from moisst_ns.stages.lidar_map import lidar_map
-    from moisst_ns.stages.photometric import Registration
+    from moisst_ns.stages.camera.camera_registration import _descend, load_camera
+    from moisst_ns.stages.camera.lidar_map import lidar_map
+    from moisst_ns.stages.camera.photometric import Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig(estimate_readout=True, fine_iterations=1, outer_iterations=1, max_evaluations=8)

@@ -1,7 +1,7 @@
 """``moisst-lidar-calibrate DATASET --output-dir OUT``: calibrate every LiDAR of a rig from its own scans.
 
 No image and no NeRF: each LiDAR's extrinsic and time offset come from the consistency of its scans placed by the
-reference trajectory (``moisst_ns.stages.lidar_first``). Writes ``OUT/calibration.json`` (every LiDAR estimated,
+reference trajectory (``moisst_ns.stages.lidar.lidar_first``). Writes ``OUT/calibration.json`` (every LiDAR estimated,
 every other sensor at its prior), ``OUT/lidar_first.json`` / ``.md`` (per-iteration cost, estimate, observability
 of each parameter) and a convergence plot. Also LiDAR-to-INS/GNSS calibration: make the INS the reference sensor.
 Nothing is written into DATASET.
@@ -47,8 +47,8 @@ def run_lidar_calibration(cfg: LidarCalibrateConfig) -> dict:
     import torch
 
     from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration, load_rig
-    from moisst_ns.stages.lidar_first import LidarFirstConfig, LidarFirstError, calibrate_lidars
-    from moisst_ns.stages.lidar_report import observability_lines, write_stage_outputs
+    from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, LidarFirstError, calibrate_lidars
+    from moisst_ns.stages.lidar.lidar_report import observability_lines, write_stage_outputs
 
     prog = "moisst-lidar-calibrate"
     try:

@@ -105,8 +105,8 @@ class MoisstDataManager(VanillaDataManager):
         if not names:
             return None, None
         from moisst_ns.rig.format import Calibration
-        from moisst_ns.stages.lidar_map import lidar_map
-        from moisst_ns.stages.map_range import opengl_to_opencv, range_image, rolling_camera_points
+        from moisst_ns.stages.camera.lidar_map import lidar_map
+        from moisst_ns.stages.camera.map_range import opengl_to_opencv, range_image, rolling_camera_points
 
         full = self.rig.rig
         unknown = [n for n in names if n not in full.sensors or full.sensors[n].type != "camera"]

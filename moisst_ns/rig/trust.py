@@ -19,7 +19,7 @@ PARAMETERS = ("x", "y", "z", "roll", "pitch", "yaw", "time_offset")
 """The parameter order of reports, trust fields and observability: lever arm along the reference frame's axes;
 rotation about the sensor's own x, y, z axes (small-angle rotation-vector components, named roll, pitch, yaw in files;
 not Euler angles); time offset. Jacobians order them (rotation vector, translation, time offset):
-``stages.observability.JACOBIAN_ORDER``."""
+``stages.trust.observability.JACOBIAN_ORDER``."""
 VERDICTS = ("converged", "not converged", "weakly observable")
 """``not converged``: still moving, or the held-back loss at the estimate no better than at the prior;
 ``weakly observable``: converged but some parameters (``weak``) are not constrained by the data."""

@@ -25,10 +25,10 @@ from jaxtyping import Float
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera_registration import CameraRegistrationConfig, camera_sensors, load_camera, register_cameras
-from moisst_ns.stages.lidar_first import LidarFirstConfig, calibrate_lidars, lidar_sensors
-from moisst_ns.stages.lidar_map import lidar_map
-from moisst_ns.stages.photometric import Registration
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, camera_sensors, load_camera, register_cameras
+from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, calibrate_lidars, lidar_sensors
+from moisst_ns.stages.camera.lidar_map import lidar_map
+from moisst_ns.stages.camera.photometric import Registration
 
 RayCaster = Callable[[Float[np.ndarray, "num 3"], Float[np.ndarray, "num 3"]], Float[np.ndarray, "num"]]
 """``(origins m, unit directions) -> distance to the true surface along each ray, m (inf on a miss)``."""

@@ -30,10 +30,10 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
-from moisst_ns.stages.camera_map import _camera_matrix, _distortion
-from moisst_ns.stages.drive_observability import analyse_drive
-from moisst_ns.stages.feature_start import _sift
-from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS
+from moisst_ns.stages.camera.camera_map import _camera_matrix, _distortion
+from moisst_ns.stages.trust.drive_observability import analyse_drive
+from moisst_ns.stages.camera.feature_start import _sift
+from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS
 
 THETA_ORDER = JACOBIAN_ORDER
 """Where each of ``PARAMETERS`` (x y z roll pitch yaw delta) sits in theta (rotation vector, translation, delta)."""

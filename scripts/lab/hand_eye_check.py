@@ -14,9 +14,9 @@ import torch
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.camera_registration import camera_sensors, load_camera
+from moisst_ns.stages.camera.camera_registration import camera_sensors, load_camera
 from hand_eye import HandEyeConfig, camera_motion, hand_eye  # scripts/lab/hand_eye.py
-from moisst_ns.stages.observability import PARAMETERS
+from moisst_ns.stages.trust.observability import PARAMETERS
 
 
 def main() -> None:

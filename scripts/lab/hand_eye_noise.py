@@ -7,7 +7,7 @@ sys.path.insert(0, __import__("os").path.dirname(__file__))
 from hand_eye import HandEyeConfig, camera_motion, motion_residuals
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera_registration import load_camera
+from moisst_ns.stages.camera.camera_registration import load_camera
 rig = load_rig(sys.argv[1]); truth = load_calibration(rig.root / "ground_truth.json")
 traj = ReferenceTrajectory.of(rig)
 for name in sys.argv[2:]:

@@ -19,10 +19,10 @@ import numpy as np
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.camera_config import CameraRegistrationConfig
-from moisst_ns.stages.camera_registration import load_camera, register_camera
-from moisst_ns.stages.lidar_map import lidar_map, pyramid_factors
-from moisst_ns.stages.photometric import Registration
+from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
+from moisst_ns.stages.camera.camera_registration import load_camera, register_camera
+from moisst_ns.stages.camera.lidar_map import lidar_map, pyramid_factors
+from moisst_ns.stages.camera.photometric import Registration
 
 
 def errors(calibration, truth, name: str) -> str:

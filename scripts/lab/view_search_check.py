@@ -15,10 +15,10 @@ import numpy as np
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.lidar_first import LidarFirstConfig, load_scans, scan_pairs
-from moisst_ns.stages.lidar_geometry import Extrinsic
-from moisst_ns.stages.lidar_view import SharedView, search_held
-from moisst_ns.stages.observability import JACOBIAN_ORDER, TEST_STEPS
+from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, load_scans, scan_pairs
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic
+from moisst_ns.stages.lidar.lidar_view import SharedView, search_held
+from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, TEST_STEPS
 
 root, lidar, start, columns = sys.argv[1], sys.argv[2], sys.argv[3], [int(c) for c in sys.argv[4].split(",")]
 rig, truth = load_rig(root), load_calibration(Path(root) / "ground_truth.json")

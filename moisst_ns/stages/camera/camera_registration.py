@@ -18,15 +18,15 @@ from jaxtyping import Float
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
-from moisst_ns.stages.camera_config import CameraRegistrationConfig
-from moisst_ns.stages.camera_map import FeatureMapConfig, feature_map
-from moisst_ns.stages.feature_start import FeatureStart, FeatureStartConfig, feature_start
-from moisst_ns.stages.lidar_map import CameraStageError, NoOverlapError, PinholeModel, lidar_map, load_pyramid, pyramid_factors
-from moisst_ns.stages.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, convergence_tail, held_back_check, points_per_frame, reference_cost,
+from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
+from moisst_ns.stages.camera.camera_map import FeatureMapConfig, feature_map
+from moisst_ns.stages.camera.feature_start import FeatureStart, FeatureStartConfig, feature_start
+from moisst_ns.stages.camera.lidar_map import CameraStageError, NoOverlapError, PinholeModel, lidar_map, load_pyramid, pyramid_factors
+from moisst_ns.stages.camera.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, convergence_tail, held_back_check, points_per_frame, reference_cost,
                                             resolution_spread, solve, split_half_spread, typical_error_significance)
-from moisst_ns.stages.photometric import CameraFrames, PairSet, Registration, robust_cost
-from moisst_ns.stages.observability import huber_weights
-from moisst_ns.stages.uncertainty_math import least_squares_sigma
+from moisst_ns.stages.camera.photometric import CameraFrames, PairSet, Registration, robust_cost
+from moisst_ns.stages.trust.observability import huber_weights
+from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
 
 def load_camera(rig: Rig, sensor: str, factors: Sequence[int]) -> CameraFrames:

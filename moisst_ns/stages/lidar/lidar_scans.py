@@ -14,7 +14,7 @@ from jaxtyping import Float, Int
 
 from moisst_ns.rig.format import Rig, RigFormatError, load_lidar_scan
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.lidar_geometry import Extrinsic, PointTimes, place_points, placement_jacobian, trajectory_at
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, PointTimes, place_points, placement_jacobian, trajectory_at
 
 class LidarFirstError(ValueError):
     """The LiDAR-first stage cannot run on this input; the message is one line naming the file/sensor and field."""

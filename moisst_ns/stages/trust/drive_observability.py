@@ -17,7 +17,7 @@ import torch
 from jaxtyping import Float
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
-from moisst_ns.stages.observability import MIN_EFFECT, PARAMETERS, TEST_STEPS, _reason, excitation, marginal_information
+from moisst_ns.stages.trust.observability import MIN_EFFECT, PARAMETERS, TEST_STEPS, _reason, excitation, marginal_information
 
 FD_STEPS = (1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4)
 """Central finite-difference steps per parameter: metres, radians, seconds."""

@@ -87,8 +87,8 @@ def rolling_camera_points(rig, frame: int, readout: float, world: Float[np.ndarr
     Returns:
         The points in the frame's OpenCV camera frame, model units.
     """
-    from moisst_ns.stages.lidar_map import PinholeModel
-    from moisst_ns.stages.photometric import CameraModel
+    from moisst_ns.stages.camera.lidar_map import PinholeModel
+    from moisst_ns.stages.camera.photometric import CameraModel
 
     sensor = int(rig.frame_sensor_index[frame])
     camera = CameraModel(rig.trajectory(), rig.prior_extrinsics[sensor], float(rig.prior_time_offsets[sensor]), rig.frame_stamps[frame:frame + 1],

@@ -20,12 +20,12 @@ from scipy.optimize import least_squares
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.lidar_geometry import Extrinsic, prior_residuals
-from moisst_ns.stages.lidar_map import CameraStageError
-from moisst_ns.stages.lidar_scans import (  # noqa: F401 (Correspondences, ScanSet, load_scans, scan_pairs: the stage's data, imported from here too)
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, prior_residuals
+from moisst_ns.stages.camera.lidar_map import CameraStageError
+from moisst_ns.stages.lidar.lidar_scans import (  # noqa: F401 (Correspondences, ScanSet, load_scans, scan_pairs: the stage's data, imported from here too)
     Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, consistency_residuals, find_correspondences, load_scans, scan_pairs)
-from moisst_ns.stages.lidar_view import SharedView, ViewSearch, search_held
-from moisst_ns.stages.observability import (JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, TYPICAL_ERROR, UNITS, Observability, analyse_observability,
+from moisst_ns.stages.lidar.lidar_view import SharedView, ViewSearch, search_held
+from moisst_ns.stages.trust.observability import (JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, TYPICAL_ERROR, UNITS, Observability, analyse_observability,
                                             huber_weights)
 
 

@@ -1,5 +1,5 @@
 """The calibrated LiDAR map and what cameras see of it: projection (with the rig format's OPENCV distortion),
-z-buffer visibility and image pyramids. Support of ``moisst_ns.stages.camera_registration``; no nerfstudio import.
+z-buffer visibility and image pyramids. Support of ``moisst_ns.stages.camera.camera_registration``; no nerfstudio import.
 
 Pixel convention (the rig format's and nerfstudio's): continuous coordinates from the image's top-left corner, the
 centre of pixel column ``i`` at ``i + 0.5``; a pyramid level ``l`` (``2^l`` times smaller, ``cv2.pyrDown``) maps
@@ -20,7 +20,7 @@ from torch import Tensor
 from moisst_ns.rig.distortion import opencv_distort
 from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.lidar_geometry import Extrinsic, place_points
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, place_points
 
 
 class CameraStageError(ValueError):

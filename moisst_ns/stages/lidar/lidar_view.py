@@ -19,10 +19,10 @@ from jaxtyping import Float, Int
 from moisst_ns.rig.format import Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_times
 from moisst_ns.rig.trust import finite_or_none
-from moisst_ns.stages.lidar_edges import scan_edges
-from moisst_ns.stages.lidar_geometry import Extrinsic, place_points
-from moisst_ns.stages.lidar_map import ImageStack, PinholeModel, bilinear, project, read_grey, visible
-from moisst_ns.stages.photometric import huber_costs
+from moisst_ns.stages.lidar.lidar_edges import scan_edges
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, place_points
+from moisst_ns.stages.camera.lidar_map import ImageStack, PinholeModel, bilinear, project, read_grey, visible
+from moisst_ns.stages.camera.photometric import huber_costs
 
 MIN_DEPTH = 3.0
 """Points nearer than this to the camera are not used (the vehicle, and a pixel's footprint varies fast), metres."""

@@ -12,9 +12,9 @@ import numpy as np
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
 from moisst_ns.rig.trust import finite_or_none
-from moisst_ns.stages.camera_registration import CameraRegistrationConfig, CameraStageResult
-from moisst_ns.stages.lidar_report import truth_table, write_stage_files
-from moisst_ns.stages.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, CameraStageResult
+from moisst_ns.stages.lidar.lidar_report import truth_table, write_stage_files
+from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS
 
 REPORT_JSON = "camera_registration.json"
 REPORT_MD = "camera_registration.md"
@@ -62,7 +62,7 @@ def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationCon
     summary = stage_summary(result, config, start, truth)
     md = ["# Camera registration against the LiDAR map", "",
           f"Photometric consistency of {result.map_points} LiDAR map points between each camera's frames and the reference "
-          "camera's (module `moisst_ns.stages.camera_registration`). Held-back cost: mean Huber cost of fresh pairs at the "
+          "camera's (module `moisst_ns.stages.camera.camera_registration`). Held-back cost: mean Huber cost of fresh pairs at the "
           "estimate vs at the prior; a camera whose estimate is not better keeps its prior.", ""]
     for name, s in summary["sensors"].items():
         if s["note"]:

@@ -13,8 +13,8 @@ import numpy as np
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
 from moisst_ns.rig.trust import finite_or_none
-from moisst_ns.stages.lidar_first import LidarFirstConfig, LidarFirstResult, LidarResult
-from moisst_ns.stages.observability import MIN_EFFECT, UNITS
+from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, LidarFirstResult, LidarResult
+from moisst_ns.stages.trust.observability import MIN_EFFECT, UNITS
 
 REPORT_JSON = "lidar_first.json"
 REPORT_MD = "lidar_first.md"

@@ -25,7 +25,7 @@ from jaxtyping import Float
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
-from moisst_ns.stages.lidar_map import CameraStageError, NoMapError, PinholeModel, project
+from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, PinholeModel, project
 
 
 @dataclass

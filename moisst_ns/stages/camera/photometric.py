@@ -1,6 +1,6 @@
 """The photometric problem of the camera-registration stage: a camera's pixels as a function of its 7 corrections
 (eq. 1, 2, 12) with their Jacobian, pairs of observations of map points, and their residuals. The method is described
-in ``moisst_ns.stages.camera_registration``'s docstring. No nerfstudio import."""
+in ``moisst_ns.stages.camera.camera_registration``'s docstring. No nerfstudio import."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from jaxtyping import Float, Int
 
 from moisst_ns.rig.format import Calibration
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, row_time, row_times, sensor_pose
-from moisst_ns.stages.lidar_geometry import right_jacobian
-from moisst_ns.stages.lidar_map import ImageStack, PinholeModel, bilinear, project, visible, world_to_camera
+from moisst_ns.stages.lidar.lidar_geometry import right_jacobian
+from moisst_ns.stages.camera.lidar_map import ImageStack, PinholeModel, bilinear, project, visible, world_to_camera
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Settings of the camera-registration stage (``moisst_ns.stages.camera_registration``, which re-exports them).
+"""Settings of the camera-registration stage (``moisst_ns.stages.camera.camera_registration``, which re-exports them).
 No nerfstudio import."""
 
 from __future__ import annotations

@@ -26,10 +26,10 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
-from moisst_ns.stages.camera_guards import SCALE
-from moisst_ns.stages.camera_map import _camera_matrix, _distortion
-from moisst_ns.stages.lidar_map import PinholeModel, project, visible, world_to_camera
-from moisst_ns.stages.photometric import CameraFrames, CameraModel
+from moisst_ns.stages.camera.camera_guards import SCALE
+from moisst_ns.stages.camera.camera_map import _camera_matrix, _distortion
+from moisst_ns.stages.camera.lidar_map import PinholeModel, project, visible, world_to_camera
+from moisst_ns.stages.camera.photometric import CameraFrames, CameraModel
 
 
 @dataclass
