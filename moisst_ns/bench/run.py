@@ -32,7 +32,7 @@ class BenchConfig:
     """Benchmark MOISST on synthetic rigs with the paper's protocol (Tables I-VII), baselines and speed."""
 
     quick: bool = False
-    """Run the packaged scenarios/bench-quick.toml (the default when neither --quick nor --full is given; < 20 min on 2 cores)."""
+    """Run the packaged scenarios/bench-quick.toml (the default when neither --quick nor --full is given; an hour or more on 2 cores)."""
     full: bool = False
     """Run the packaged scenarios/bench-full.toml (hours on 2 CPU cores)."""
     scenarios: Optional[Path] = None
