@@ -12,7 +12,6 @@ import time
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Literal, Type
-from unittest import mock
 
 import numpy as np
 import torch
@@ -26,7 +25,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
 from moisst_ns.data.dataparser import MoisstRigDataParserConfig
 from moisst_ns.method_configs import _adam_decay, moisst_trainer_config
-from moisst_ns.compat import _NoLPIPS
+from moisst_ns.compat import without_lpips
 
 
 @dataclass
@@ -40,7 +39,7 @@ class OfflineNerfactoModel(NerfactoModel):
     """Stock nerfacto, minus LPIPS."""
 
     def populate_modules(self):
-        with mock.patch("torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity", _NoLPIPS):
+        with without_lpips():
             super().populate_modules()
 
 
