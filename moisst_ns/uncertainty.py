@@ -199,7 +199,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         ``(calibration with trust fields, JSON-ready per-sensor record, lines to print)``.
     """
     from moisst_ns.rig.format import Calibration
-    from moisst_ns.rig.trust import PARAMETERS, UNCONSTRAINED, decide_verdict
+    from moisst_ns.rig.trust import PARAMETERS, UNCONSTRAINED, decide_verdict, finite_or_none
     from moisst_ns.stages.trust.observability import TEST_STEPS, UNITS
 
     start = time.time()
@@ -248,7 +248,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
             lines.append(f"WARNING: {name}: {reason}; calibration.json keeps it")
         # a kept prior's own uncertainty is unknown: the sigma measured belongs to the estimate set aside (summary only)
         final.trust[name] = trust_entry(None if keep_prior else sigma, verdict, weak, reason)
-        record[name] = {"sigma": None if sigma is None else [float(v) if np.isfinite(v) else None for v in sigma], "sigma_source": source, "loss_estimate": loss_est, "loss_prior": loss_prior,
+        record[name] = {"sigma": None if sigma is None else [finite_or_none(v) for v in sigma], "sigma_source": source, "loss_estimate": loss_est, "loss_prior": loss_prior,
                         "kept_prior": keep_prior, **final.trust[name].to_json()}
     head = f"{'sensor':<12}" + "".join(f"{'s_' + p:>14}" for p in PARAMETERS) + "  verdict"
     table = ["uncertainty (1 sigma: cm, deg, ms) and verdict per sensor:", head]
