@@ -208,7 +208,7 @@ def run_camera_registration(rig, lidar_stage: Optional[dict], truth, out: Path, 
     start = load_calibration(lidar_stage.get("file", out / "lidar_first" / "calibration.json")) if lidar_stage is not None else Calibration.from_rig(rig)
     config = CameraRegistrationConfig(**options)
     try:
-        result = register_cameras(rig, start, config)
+        result = register_cameras(rig, start, config, lidar_undetermined={n: e.get("undetermined", []) for n, e in (lidar_stage or {}).get("sensors", {}).items()})
     except NoMapError as err:
         print(f"camera registration skipped: {err}; the NeRF calibrates the cameras")
         return None

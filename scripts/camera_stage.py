@@ -2,7 +2,7 @@
 against the map; prints every sensor's error and each camera's sigma, and writes the per-parameter errors and sigmas
 (x, y, z, roll, pitch, yaw, time offset; m, rad, s) to JSON for coverage tables (docs/method.md, docs/uncertainty.md).
 
-Usage: .venv/bin/python scripts/camera_stage.py RIG [RIG ...] [--json OUT.json] [--set points_per_frame=1500 ...]
+Usage: .venv/bin/python scripts/camera_stage.py RIG [RIG ...] [--json OUT.json] [--set points_per_frame=1500 ...] [--lidar-map]
 """
 
 from __future__ import annotations
@@ -40,13 +40,15 @@ def config_from(settings: list) -> CameraRegistrationConfig:
     return dataclasses.replace(defaults, **changes)
 
 
-def run(folder: Path, config: CameraRegistrationConfig) -> dict:
+def run(folder: Path, config: CameraRegistrationConfig, lidar_map: bool = False) -> dict:
     """Both stages on one rig; the per-camera record."""
     rig, truth = load_rig(folder), load_calibration(folder / "ground_truth.json")
     start = time.perf_counter()
-    calibration = calibrate_lidars(rig, LidarFirstConfig(), log=lambda s: None).calibration if lidar_sensors(rig) else Calibration.from_rig(rig)
+    lidar = calibrate_lidars(rig, LidarFirstConfig(), log=lambda s: None) if lidar_sensors(rig) else None
+    calibration = lidar.calibration if lidar else Calibration.from_rig(rig)
     lidar_s = time.perf_counter() - start
-    result = register_cameras(rig, calibration, config)
+    result = register_cameras(rig, calibration, config, lidar_undetermined=None if lidar is None or lidar_map else {n: r.undetermined() for n, r in lidar.lidars.items()})
+    print(f"{folder}: map from the {result.map_source}{': ' + result.map_note if result.map_note else ''}")
     print(f"{folder}: LiDAR first {lidar_s:.1f} s, cameras {time.perf_counter() - start - lidar_s:.1f} s")
     errors = calibration_report_errors(result.calibration, truth)
     record = {}
@@ -71,9 +73,10 @@ def main() -> None:
     parser.add_argument("rigs", type=Path, nargs="+")
     parser.add_argument("--json", type=Path, default=None, help="write {rig: {camera: record}} here")
     parser.add_argument("--set", nargs="*", default=[], help="CameraRegistrationConfig overrides, name=value")
+    parser.add_argument("--lidar-map", action="store_true", help="the LiDAR map even where the LiDAR stage left a parameter undetermined")
     args = parser.parse_args()
     config = config_from(args.set)
-    records = {str(folder): run(folder, config) for folder in args.rigs}
+    records = {str(folder): run(folder, config, args.lidar_map) for folder in args.rigs}
     if args.json:
         args.json.write_text(json.dumps(records, indent=1) + "\n")
 

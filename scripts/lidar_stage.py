@@ -36,7 +36,7 @@ def main() -> None:
         d = np.array(parameter_difference(result.calibration.T_ref_sensor[name], result.calibration.time_offset[name],
                                           truth.T_ref_sensor[name], truth.time_offset[name]))
         print(f"RESULT {sys.argv[1]} {changes} {name}: error {np.linalg.norm(d[:3]) * 100:.2f} cm "
-              f"{np.rad2deg(np.linalg.norm(d[3:6])):.3f} deg {abs(d[6]) * 1000:.2f} ms; per axis cm {np.round(d[:3] * 100, 2)} "
+              f"{np.rad2deg(np.linalg.norm(d[3:6])):.3f} deg {abs(d[6]) * 1000:.2f} ms; undetermined {lidar.undetermined()}; per axis cm {np.round(d[:3] * 100, 2)} "
               f"deg {np.round(np.rad2deg(d[3:6]), 3)}; weak {lidar.observability.weak}; "
               f"sigma {[f'{x.sigma:.3g}' for x in lidar.observability.dofs]}; split-half / placed sigma "
               f"{None if lidar.sigma_split is None else [f'{x:.3g}' for x in lidar.sigma_split]}; wall {time.time() - start:.0f} s")

@@ -12,7 +12,7 @@ from moisst_ns.datasets.synth import SynthConfig, make_rig
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, register_cameras
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, map_source, register_cameras
 from moisst_ns.stages.camera.photometric import CameraModel
 from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, PinholeModel, project, pyramid_factors, visible
 
@@ -143,6 +143,26 @@ def test_too_few_frames_keep_their_priors_without_a_map(rig_folder):
     for name, r in result.cameras.items():
         assert r.kept_prior and r.note == "only 20 frames; the stage needs 21"
         np.testing.assert_array_equal(result.calibration.T_ref_sensor[name], start.T_ref_sensor[name])
+
+
+def test_a_lidar_the_first_stage_left_undetermined_does_not_make_the_cameras_map(rig_folder, tmp_path):
+    """``map_source``: the LiDAR map unless the LiDAR-first stage left a LiDAR parameter undetermined (then the reference
+    camera's triangulated features, the reason naming the LiDAR and its parameters); without a LiDAR, the features.
+    Registered with the LiDAR undetermined, a camera's result does not depend on the LiDAR's calibration at all: the
+    same, to the bit, with the LiDAR at its true calibration and at its prior 86.6 cm / 8.8 deg off."""
+    rig, truth, at_truth = lidar_at_truth(rig_folder)
+    assert map_source(rig) == ("lidar", "") and map_source(rig, {"lidar": []}) == ("lidar", "")
+    source, why = map_source(rig, {"lidar": ["x", "z"]})
+    assert source == "features" and "lidar's x, z undetermined" in why
+    lidarless = load_rig(make_rig(SynthConfig(out=tmp_path / "nolidar", seed=1, width=32, height=24, frames=2, lidar=False)))
+    assert map_source(lidarless, {"lidar": ["x"]}) == ("features", "")
+    at_prior = Calibration.from_rig(rig)
+    results = [register_cameras(rig, start, CameraRegistrationConfig(), sensors=["cam_front_right"], log=lambda s: None,
+                                lidar_undetermined={"lidar": ["z"]}) for start in (at_truth, at_prior)]
+    assert [r.map_source for r in results] == ["features", "features"] and results[0].map_points == results[1].map_points > 100
+    np.testing.assert_array_equal(results[0].calibration.T_ref_sensor["cam_front_right"], results[1].calibration.T_ref_sensor["cam_front_right"])
+    assert results[0].calibration.time_offset["cam_front_right"] == results[1].calibration.time_offset["cam_front_right"]
+    assert not np.array_equal(results[0].calibration.T_ref_sensor["cam_front_right"], at_truth.T_ref_sensor["cam_front_right"])  # it moved
 
 
 def test_bad_input_one_line_errors(rig_folder, tmp_path):

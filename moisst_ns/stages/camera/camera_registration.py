@@ -253,6 +253,11 @@ class CameraStageResult:
     calibration: Calibration
     cameras: Dict[str, CameraResult]
     map_points: int
+    map_source: str = "lidar"
+    """What the map is: ``"lidar"`` (the LiDARs' scans), ``"features"`` (the reference camera's triangulated features)
+    or ``"none"`` (no camera had enough frames to fit)."""
+    map_note: str = ""
+    """Why the map is the features on a rig with a LiDAR (``map_source``), else empty."""
 
 
 def _prior_kept(name: str, calibration: Calibration, why: str, rig: Optional[Rig] = None) -> CameraResult:
@@ -264,23 +269,48 @@ def _prior_kept(name: str, calibration: Calibration, why: str, rig: Optional[Rig
                         readout_prior=readout, readout_time=readout)
 
 
+def map_source(rig: Rig, lidar_undetermined: Optional[Dict[str, Sequence[str]]] = None) -> Tuple[str, str]:
+    """What the cameras are registered against, and why when it is not the LiDAR on a rig with one.
+
+    The LiDAR map places its points with the LiDAR-first estimate, so a LiDAR parameter that stage left undetermined
+    (``LidarResult.undetermined``: held at its prior, or a split-half sigma above a typical prior error) moves the whole
+    map by about its prior error, and every camera registered against it inherits that error under a sigma that cannot
+    see it (KITTI raw 0048: the Velodyne's along-track lever arm held 50 cm off; image_03 then 27 cm off). The reference camera's features, triangulated from
+    its known poses, carry only the trajectory's error: the map where a LiDAR is undetermined and the reference sensor
+    is a camera (docs/method.md, "The cameras' map").
+
+    Returns:
+        ``("lidar", "")``, or ``("features", why)`` (``why`` empty on a rig without a LiDAR).
+    """
+    lidars = [n for n, s in rig.sensors.items() if s.type == "lidar"]
+    if not lidars:
+        return "features", ""
+    unknown = {n: list(w) for n, w in (lidar_undetermined or {}).items() if n in lidars and w}
+    if not unknown or rig.sensors[rig.reference_sensor].type != "camera":
+        return "lidar", ""
+    return "features", ("the LiDAR-first stage left " + "; ".join(f"{n}'s {', '.join(w)}" for n, w in unknown.items())
+                        + " undetermined, which a LiDAR map would pass on to every camera")
+
+
 def camera_sensors(rig: Rig) -> List[str]:
     """The rig's non-reference cameras (the ones this stage registers)."""
     return [n for n, s in rig.sensors.items() if s.type == "camera" and n != rig.reference_sensor]
 
 
 def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrationConfig, sensors: Optional[Sequence[str]] = None,
-                     log: Callable[[str], None] = print) -> CameraStageResult:
+                     log: Callable[[str], None] = print, lidar_undetermined: Optional[Dict[str, Sequence[str]]] = None) -> CameraStageResult:
     """Register every non-reference camera against the map of the LiDARs at ``calibration``.
 
     Args:
         rig: the dataset; its reference sensor must be a camera (its images carry the colours) or a LiDAR. With a
             LiDAR the map is the LiDARs' scans (``lidar_map``), without one the reference camera's triangulated
-            features (``camera_map.feature_map``).
+            features (``camera_map.feature_map``); those features too when a LiDAR's calibration is not determined
+            (``lidar_undetermined``, ``map_source``).
         calibration: the calibration to start from (the LiDAR-first estimate: LiDARs calibrated, cameras at priors).
         config: settings.
         sensors: the cameras to register (default: every non-reference camera).
         log: where progress lines go.
+        lidar_undetermined: per LiDAR, the parameters the LiDAR-first stage left undetermined (None: all determined).
 
     Returns:
         The result; ``calibration`` holds the registered cameras (or their priors where kept).
@@ -302,11 +332,13 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     for name, r in results.items():
         log(f"[camera-registration] {name}: {r.note}; it keeps its prior here")
     if len(results) == len(cameras):  # nothing to fit: no map needed
-        return CameraStageResult(out, results, 0)
-    lidarless = not any(s.type == "lidar" for s in rig.sensors.values())
-    if not lidarless:
+        return CameraStageResult(out, results, 0, "none")
+    source, why_source = map_source(rig, lidar_undetermined)
+    if source == "lidar":
         world = lidar_map(rig, calibration, config.map_voxel, config.min_range, log)
-    else:  # a camera-only rig: the reference camera's features, triangulated from its known poses
+    else:  # the reference camera's features, triangulated from its known poses
+        if why_source:
+            log(f"[camera-registration] the map is {rig.reference_sensor}'s triangulated features: {why_source}")
         world = feature_map(rig, calibration, FeatureMapConfig(voxel=config.map_voxel), log)
     traj = ReferenceTrajectory.of(rig)
     reference_name = rig.reference_sensor if rig.sensors[rig.reference_sensor].type == "camera" else None
@@ -338,11 +370,11 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             results[name] = _prior_kept(name, calibration, str(err), rig)
             log(f"[camera-registration] {name}: {err}; it keeps its prior here")
         r = results[name]
-        if lidarless and initial is not None and initial.theta is None:  # neither this stage nor the NeRF can place it
-            why = (f"it shares no view with {reference_name} ({initial.note}) and the rig has no LiDAR: fitted to {reference_name}'s "
-                   "triangulated features alone, it inherits their errors, which none of its sigma parts sees")
+        if source == "features" and initial is not None and initial.theta is None:  # neither this stage nor the NeRF can place it
+            why = (f"it shares no view with {reference_name} ({initial.note}) and {why_source or 'the rig has no LiDAR'}: fitted to "
+                   f"{reference_name}'s triangulated features alone, it inherits their errors, which none of its sigma parts sees")
             r = results[name] = replace(r, estimate=r.prior, time_offset=r.prior_offset, kept_prior=True, held_there=True, readout_time=r.readout_prior,
                                         note=f"{r.note}; {why}" if r.kept_prior and r.note else why)
             log(f"[camera-registration] {name}: {why}; it keeps its prior")
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
-    return CameraStageResult(out, {n: results[n] for n in cameras}, len(world))
+    return CameraStageResult(out, {n: results[n] for n in cameras}, len(world), source, why_source)

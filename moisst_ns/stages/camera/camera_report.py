@@ -53,15 +53,18 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry
-    return {"stage": "camera-registration", "config": asdict(config), "map_points": result.map_points, "sensors": sensors}
+    return {"stage": "camera-registration", "config": asdict(config), "map_points": result.map_points, "map_source": result.map_source,
+            "map_note": result.map_note, "sensors": sensors}
 
 
 def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationConfig, start: Calibration, truth: Optional[Calibration],
                         out: Path) -> dict:
     """Write ``calibration.json``, ``camera_registration.json`` and ``camera_registration.md`` into ``out``."""
     summary = stage_summary(result, config, start, truth)
-    md = ["# Camera registration against the LiDAR map", "",
-          f"Photometric consistency of {result.map_points} LiDAR map points between each camera's frames and the reference "
+    what = "LiDAR map points" if result.map_source == "lidar" else "triangulated features of the reference camera"
+    md = [f"# Camera registration against the {'LiDAR map' if result.map_source == 'lidar' else 'reference camera features'}", "",
+          *([f"The map is the reference camera's features: {result.map_note}.", ""] if result.map_note else []),
+          f"Photometric consistency of {result.map_points} {what} between each camera's frames and the reference "
           "camera's (module `moisst_ns.stages.camera.camera_registration`). Held-back cost: mean Huber cost of fresh pairs at the "
           "estimate vs at the prior; a camera whose estimate is not better keeps its prior.", ""]
     for name, s in summary["sensors"].items():

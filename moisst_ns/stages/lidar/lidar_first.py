@@ -53,6 +53,14 @@ class LidarResult:
     view_search: Optional[Dict[str, object]] = None
     """``view_search``: the columns searched, those placed, their sigma and the notes (``lidar_view.ViewSearch``)."""
 
+    def undetermined(self) -> List[str]:
+        """The parameters (``PARAMETERS`` names) this stage did not determine: held at the prior and not placed by the
+        shared view, or with a split-half (or placed) sigma above a typical prior error (``TEST_STEPS``)."""
+        placed = [PARAMETERS[JACOBIAN_ORDER.index(j)] for j in (self.view_search or {}).get("accepted", [])]
+        held = [p for p in (self.held_check or {}).get("held", []) if p not in placed]
+        spread = self.sigma_split or [0.0] * 7
+        return [p for p, v, typical in zip(PARAMETERS, spread, TEST_STEPS) if p in held or v > typical]
+
 
 def _fit(traj: ReferenceTrajectory, scans: ScanSet, pairs: np.ndarray, baselines: np.ndarray, start: Extrinsic, prior: Extrinsic, free: np.ndarray,
          config: LidarFirstConfig, log: Callable[[str], None], where: str) -> Tuple[Extrinsic, List[Dict[str, float]]]:
