@@ -24,7 +24,6 @@ from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, prior_residuals
 from moisst_ns.stages.camera.lidar_map import CameraStageError
 from moisst_ns.stages.lidar.lidar_scans import (  # noqa: F401 (Correspondences, ScanSet, load_scans, scan_pairs: the stage's data, imported from here too)
     Correspondences, LidarFirstConfig, LidarFirstError, ScanSet, consistency_residuals, find_correspondences, load_scans, scan_pairs)
-from moisst_ns.stages.lidar.lidar_features import FeaturePlacement, FeatureView, place_by_features
 from moisst_ns.stages.lidar.lidar_view import SharedView, ViewSearch, search_held
 from moisst_ns.stages.trust.observability import (JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, TYPICAL_ERROR, UNITS, Observability, analyse_observability,
                                             huber_weights)
@@ -53,14 +52,11 @@ class LidarResult:
     measured), or None when ``split_half`` is off."""
     view_search: Optional[Dict[str, object]] = None
     """``view_search``: the columns searched, those placed, their sigma and the notes (``lidar_view.ViewSearch``)."""
-    feature_search: Optional[Dict[str, object]] = None
-    """``feature_search``: the same for the triangulated features (``lidar_features.FeaturePlacement``)."""
 
     def undetermined(self) -> List[str]:
-        """The parameters (``PARAMETERS`` names) this stage did not determine: held at the prior and placed neither by
-        the depth edges nor by the features, or with a split-half (or placed) sigma above a typical prior error
-        (``TEST_STEPS``)."""
-        placed = [PARAMETERS[JACOBIAN_ORDER.index(j)] for search in (self.view_search, self.feature_search) for j in (search or {}).get("accepted", [])]
+        """The parameters (``PARAMETERS`` names) this stage did not determine: held at the prior and not placed by the
+        shared view, or with a split-half (or placed) sigma above a typical prior error (``TEST_STEPS``)."""
+        placed = [PARAMETERS[JACOBIAN_ORDER.index(j)] for j in (self.view_search or {}).get("accepted", [])]
         held = [p for p in (self.held_check or {}).get("held", []) if p not in placed]
         spread = self.sigma_split or [0.0] * 7
         return [p for p, v, typical in zip(PARAMETERS, spread, TEST_STEPS) if p in held or v > typical]
@@ -192,55 +188,16 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
         except CameraStageError as err:
             raise LidarFirstError(str(err)) from None
         ext, searched = _place_by_view(sensor, traj, scans, pairs, baselines, ext, prior, free, held_apart, view, observability, split, fine, log, where)
-    featured = None
-    placed = [] if searched is None else searched.accepted
-    still = [JACOBIAN_ORDER[i] for i in range(3) if (JACOBIAN_ORDER[i] in held_apart and JACOBIAN_ORDER[i] not in placed)
-             or (split is not None and split[i] > TEST_STEPS[i])]
-    if config.feature_search and still and rig.sensors[rig.reference_sensor].type == "camera":
-        ext, featured = _place_by_features(rig, sensor, traj, scans, pairs, baselines, ext, prior, free, still, observability, split, fine, log, where)
-        held_apart += [j for j in featured.accepted if j not in held_apart]
-        free = np.array([j for j in free if j not in featured.accepted])
     held = None
     if len(free) < 7:
         released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where)
         held = release_check(ext, released, free, observability, expected=held_apart)
-        placed += [] if featured is None else featured.accepted
-        if placed:  # a motion-only release cannot measure what the view placed
-            held["sigma_release"] = [0.0 if j in placed else v for v, j in zip(held["sigma_release"], JACOBIAN_ORDER)]
+        if searched is not None:  # a motion-only release cannot measure what the view placed
+            held["sigma_release"] = [0.0 if j in searched.accepted else v for v, j in zip(held["sigma_release"], JACOBIAN_ORDER)]
         if held["note"]:
             log(f"[lidar-first] {sensor}: {held['note']}")
     return LidarResult(sensor, prior, ext, history, observability, len(scans.stamps), scans.deskewed, scans.dropped,
-                       time.perf_counter() - start, held, split, None if searched is None else searched.to_json(),
-                       None if featured is None else featured.to_json())
-
-
-def _place_by_features(rig: Rig, sensor: str, traj: ReferenceTrajectory, scans: ScanSet, pairs, baselines, ext: Extrinsic, prior: Extrinsic, free,
-                       columns: List[int], observability: Observability, split: Optional[List[float]], fine: LidarFirstConfig,
-                       log: Callable[[str], None], where: str) -> Tuple[Extrinsic, FeaturePlacement]:
-    """``feature_search``: the lever-arm ``columns`` still undetermined placed by the reference camera's features
-    (``place_by_features``); the placed ones leave the weak list with its sigma (into ``split`` too) and are held there,
-    the other free parameters are fitted again."""
-    names = lambda cols: ", ".join(PARAMETERS[JACOBIAN_ORDER.index(j)] for j in cols) or "none"
-    view = FeatureView.of(rig, traj)
-    if view is None:
-        found = FeaturePlacement(list(columns), [], np.zeros(7), np.full(7, np.nan), ["no triangulated features"], 0)
-    else:
-        found = place_by_features(traj, ext, scans, view, columns, fine.hold_split_half, TYPICAL_ERROR)
-    log(f"[lidar-first] {sensor}: the reference camera's features ({found.features} on the LiDAR's surfaces) place "
-        f"{names(found.accepted)} of {names(found.columns)}" + (f" ({'; '.join(found.notes)})" if found.notes else ""))
-    if not found.accepted:
-        return ext, found
-    rest = np.array([j for j in free if j not in found.accepted])
-    ext = ext.updated(found.increment)
-    if len(rest):
-        ext = _fit(traj, scans, pairs, baselines, ext, prior, rest, fine, log, where)[0]
-    for j in found.accepted:
-        i = JACOBIAN_ORDER.index(j)
-        dof = observability.dofs[i]
-        dof.weak, dof.reason = False, f"placed by the reference camera's features (sigma {found.sigma[j] * UNITS[i][0]:.3g} {UNITS[i][1]})"
-        if split is not None:
-            split[i] = float(found.sigma[j])
-    return ext, found
+                       time.perf_counter() - start, held, split, None if searched is None else searched.to_json())
 
 
 def _place_by_view(sensor: str, traj: ReferenceTrajectory, scans: ScanSet, pairs, baselines, ext: Extrinsic, prior: Extrinsic, free, held: List[int],

@@ -52,8 +52,6 @@ def stage_summary(result: LidarFirstResult, config: LidarFirstConfig, prior: Cal
             entry["sigma_split_half"] = [finite_or_none(v) for v in r.sigma_split]
         if r.view_search is not None:
             entry["view_search"] = r.view_search
-        if r.feature_search is not None:
-            entry["feature_search"] = r.feature_search
         if truth:
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry

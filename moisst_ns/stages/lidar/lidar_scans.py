@@ -89,10 +89,6 @@ class LidarFirstConfig:
     """Where the halves hold rotations or lever-arm components at the prior and the reference sensor is a camera: place
     them by the reference camera's view of the LiDAR's depth edges (``lidar_view.search_held``), then fit the free
     parameters again around them."""
-    feature_search: bool = True
-    """After ``view_search``, lever-arm components still undetermined (held and not placed, or a split-half sigma above a
-    typical prior error) and a camera reference: place them by the reference camera's triangulated features lying on
-    the LiDAR's surfaces (``lidar_features.place_by_features``), then fit the free parameters again around them."""
 
 
 
