@@ -46,7 +46,7 @@ def test_depth_mismatch_at_the_reference_does_not_blame_a_camera_registered_agai
     v = sensor_verdicts(SENSORS, summary(camera_registration=registration, lidar_first={"lidar": {"weak": []}}), renders=renders,
                         lidars=["lidar"], reference="cam_front")
     assert v["cam_right"]["caveats"] == ["the scene disagrees with the LiDAR (median |rendered depth - LiDAR depth| = 24.10 m on "
-                                         "cam_front's render (> 1.00 m)); this camera was registered against the LiDAR map, not the scene"]
+                                         "cam_front's render (> 1.00 m)); this camera was registered by the camera stage against its map, not against the scene"]
     assert v["cam_right"]["trust"]
     assert any(f.startswith("registered against an unreliable scene") for f in v["cam_left"]["flags"])  # kept its prior: the NeRF's
 

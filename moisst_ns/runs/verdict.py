@@ -7,7 +7,7 @@ A sensor is flagged when
   ``max(DEPTH_MISMATCH_M, DEPTH_MISMATCH_FRACTION x median LiDAR depth)``. At the reference camera (known poses)
   it means the scene or the LiDAR is wrong: a LiDAR calibrated by the LiDAR-first stage (from its own scans, not
   from the scene) is not blamed, nor is a camera held at its camera-registration estimate (registered against the
-  LiDAR map); the other cameras are (they were registered against that scene); a LiDAR calibrated in the NeRF is.
+  stage's map); the other cameras are (they were registered against that scene); a LiDAR calibrated in the NeRF is.
   At another camera, with the reference's render in agreement, it flags that camera;
 * ``calibration.json`` says so: the optional per-sensor fields ``verdict`` ("converged" | "not converged" |
   "weakly observable"), ``weak`` (parameters), ``reason`` and ``uncertainty`` are shown when present.
@@ -88,8 +88,8 @@ def sensor_verdicts(sensors: Iterable[str], summary: Dict[str, Any], calibration
             caveats.append(f"the scene disagrees with its depth ({reference_bad}); this LiDAR was calibrated from its "
                            "own scans, the scene is what is off")
         elif name not in lidars and name in registered and reference_bad:
-            caveats.append(f"the scene disagrees with the LiDAR ({reference_bad}); this camera was registered against the "
-                           "LiDAR map, not the scene")
+            caveats.append(f"the scene disagrees with the LiDAR ({reference_bad}); this camera was registered by the "
+                           "camera stage against its map, not against the scene")
         elif name not in lidars and reference_bad:
             flags.append(f"registered against an unreliable scene ({reference_bad})")
         elif name in mismatch:
