@@ -432,18 +432,20 @@ def test_a_straight_drive_keeps_at_the_prior_what_it_does_not_determine(tmp_path
     assert all(after[k] <= prior[k] + 1e-3 for k in ("translation_cm", "rotation_deg", "time_ms")), (after, prior)
 
 def test_undetermined_is_what_was_held_and_not_placed_or_has_a_spread_over_a_typical_error():
-    """``LidarResult.undetermined`` (what the camera stage's ``map_source`` reads): held at the prior and not placed by
-    the shared view, or a split-half / placed sigma above a typical prior error (10 cm, 1 deg, 10 ms); exact lists."""
+    """``LidarResult.undetermined`` (what the camera stage's ``map_source`` reads): held at the prior because the halves
+    disagree and not placed by the shared view, or a split-half / placed sigma above a typical prior error (10 cm,
+    1 deg, 10 ms); a parameter the user holds is not undetermined; exact lists."""
     from moisst_ns.stages.lidar.lidar_first import LidarResult
 
-    def result(held, split, accepted):
-        return LidarResult("lidar", None, None, [], None, 0, False, [], 0.0, held_check={"held": held}, sigma_split=split,
-                           view_search={"accepted": accepted})
+    def result(held, split, accepted, by_user=()):
+        return LidarResult("lidar", None, None, [], None, 0, False, [], 0.0, held_check={"held": held + list(by_user), "held_apart": held},
+                           sigma_split=split, view_search={"accepted": accepted})
 
     split = [0.19, 0.03, 0.0, 0.014, 0.002, 0.001, 0.006]  # KITTI raw 0048's: x 19 cm apart, the roll placed
     assert result(["x", "z", "roll"], split, [0]).undetermined() == ["x", "z"]  # roll is Jacobian column 0
     assert result(["x", "z", "roll"], split, []).undetermined() == ["x", "z", "roll"]
     assert result([], [0.05, 0.12, 0.0, 0.0, 0.0, 0.02, 0.011], []).undetermined() == ["y", "yaw", "time_offset"]
+    assert result(["z"], split, [], by_user=["x", "y", "roll", "pitch", "yaw"]).undetermined() == ["x", "z"]  # x by its spread
     assert LidarResult("lidar", None, None, [], None, 0, False, [], 0.0).undetermined() == []
 
 

@@ -6,7 +6,7 @@ between two of its frames, ``B = X^-1 Traj(t_j + delta)^-1 Traj(t_k + delta) X``
 Sampson distance of every RANSAC-inlier match of every frame pair (pixels) is minimised over the 7 corrections
 (soft L1). Lab experiment for issue 38.
 
-Usage: .venv/bin/python scripts/lab/epipolar_hand_eye.py RIG [CAMERA ...] [--lag 3] [--level 1]
+Usage: .venv/bin/python scripts/lab/epipolar_hand_eye.py RIG [CAMERA ...] [--lag 3] [--rot-only]
 """
 
 from __future__ import annotations
@@ -90,7 +90,6 @@ def main():
     p.add_argument("rig")
     p.add_argument("cameras", nargs="*")
     p.add_argument("--lag", type=int, default=3)
-    p.add_argument("--level", type=int, default=1)
     p.add_argument("--max-offset", type=float, default=0.3)
     p.add_argument("--rot-only", action="store_true")
     args = p.parse_args()

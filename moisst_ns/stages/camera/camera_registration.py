@@ -275,9 +275,9 @@ def map_source(rig: Rig, lidar_undetermined: Optional[Dict[str, Sequence[str]]] 
     The LiDAR map places its points with the LiDAR-first estimate, so a LiDAR parameter that stage left undetermined
     (``LidarResult.undetermined``: held at its prior, or a split-half sigma above a typical prior error) moves the whole
     map by about its prior error, and every camera registered against it inherits that error under a sigma that cannot
-    see it (KITTI raw 0048: the Velodyne's along-track lever arm held 50 cm off; image_03 then 27 cm off). The reference camera's features, triangulated from
-    its known poses, carry only the trajectory's error: the map where a LiDAR is undetermined and the reference sensor
-    is a camera (docs/method.md, "The cameras' map").
+    see it (KITTI raw 0048: the Velodyne's along-track lever arm held 50 cm off; image_03 then 27 cm off). The
+    reference camera's features, triangulated from its known poses, carry only the trajectory's error: the map where a
+    LiDAR is undetermined and the reference sensor is a camera (docs/method.md, "The cameras' map").
 
     Returns:
         ``("lidar", "")``, or ``("features", why)`` (``why`` empty on a rig without a LiDAR).

@@ -54,10 +54,12 @@ class LidarResult:
     """``view_search``: the columns searched, those placed, their sigma and the notes (``lidar_view.ViewSearch``)."""
 
     def undetermined(self) -> List[str]:
-        """The parameters (``PARAMETERS`` names) this stage did not determine: held at the prior and not placed by the
-        shared view, or with a split-half (or placed) sigma above a typical prior error (``TEST_STEPS``)."""
+        """The parameters (``PARAMETERS`` names) this stage did not determine: held at the prior because the drive's
+        halves disagree and not placed by the shared view, or with a split-half (or placed) sigma above a typical prior
+        error (``TEST_STEPS``). A parameter the user holds (``estimate_extrinsic``/``estimate_time_offset`` off) is given,
+        not undetermined."""
         placed = [PARAMETERS[JACOBIAN_ORDER.index(j)] for j in (self.view_search or {}).get("accepted", [])]
-        held = [p for p in (self.held_check or {}).get("held", []) if p not in placed]
+        held = [p for p in (self.held_check or {}).get("held_apart", []) if p not in placed]
         spread = self.sigma_split or [0.0] * 7
         return [p for p, v, typical in zip(PARAMETERS, spread, TEST_STEPS) if p in held or v > typical]
 
@@ -241,8 +243,8 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
             determine them (``LidarFirstConfig.hold_weak``), so their move is their sigma, not a disagreement.
 
     Returns:
-        ``{"held": [...], "released_change": [7], "inconsistent": [...], "sigma_release": [7], "note"}`` in
-        ``observability.PARAMETERS`` order (m, rad, s); ``sigma_release`` is ``|released_change|``; ``note`` says which
+        ``{"held": [...], "held_apart": [...] (those of ``expected``), "released_change": [7], "inconsistent": [...],
+        "sigma_release": [7], "note"}`` in ``observability.PARAMETERS`` order (m, rad, s); ``sigma_release`` is ``|released_change|``; ``note`` says which
         held parameters disagree and by how much (empty when none does).
     """
     change = np.asarray(parameter_difference(estimate.matrix(), estimate.time_offset, released.matrix(), released.time_offset))
@@ -253,8 +255,8 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
                     if not f and abs(c) > max(3.0 * s, 0.1 * step) and j not in expected]
     moves = ", ".join(f"{p} {c * u:+.3g} {unit}" for p, c, (u, unit) in zip(PARAMETERS, change, UNITS) if p in inconsistent)
     note = f"held at its prior, {', '.join(inconsistent)} disagree with the scans (released, they move by {moves})" if inconsistent else ""
-    return {"held": held, "released_change": change.tolist(), "inconsistent": inconsistent,
-            "sigma_release": np.abs(change).tolist(), "note": note}
+    return {"held": held, "held_apart": [p for p, j in zip(PARAMETERS, JACOBIAN_ORDER) if j in expected], "released_change": change.tolist(),
+            "inconsistent": inconsistent, "sigma_release": np.abs(change).tolist(), "note": note}
 
 
 def split_half_spread(fit: Callable[[np.ndarray, np.ndarray], Optional[Extrinsic]], pairs: Int[np.ndarray, "num 2"],
