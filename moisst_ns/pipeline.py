@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Type
 
+import torch
 import tyro
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer
@@ -76,6 +77,26 @@ class MoisstPipeline(VanillaPipeline):
         self._started = time.time()
         return callbacks
 
+    def judge_refinement(self, moving: dict) -> dict:
+        """Keep the NeRF's refinement of a registered camera only when it renders the camera's held-back frames
+        significantly better than the stage's estimate and has settled; otherwise the camera goes back to the stage's
+        estimate (the optimiser's prior) and counts as held there (``run.frozen``; removed from ``moving``)."""
+        from moisst_ns.uncertainty import refinement_check
+
+        run, rig = self.stage_run, self.model.camera_optimizer.rig
+        checks = refinement_check(self, list(run.refined), run.seed)
+        for name, check in checks.items():
+            check["kept"] = check["kept"] and name not in moving
+            if not check["kept"]:
+                i = rig.data.sensor_names.index(name)
+                with torch.no_grad():
+                    rig.translation[i], rig.rotvec[i], rig.time_offset[i], rig.trainable[i] = 0.0, 0.0, 0.0, False
+                run.frozen, _ = run.frozen + (name,), moving.pop(name, None)
+            losses = "no held-back frames" if check["p_value"] is None else \
+                f"held-back loss {check['loss_refined']:.5g} refined vs {check['loss_stage']:.5g} at the stage's estimate, p = {check['p_value']:.3g}"
+            print(f"refinement: {name}: {losses}: {'kept' if check['kept'] else 'the stage estimate is kept'}")
+        return checks
+
     def finish(self, trainer, step: int) -> None:
         """After the last step: ``calibration.json`` (the prior kept where the held-back loss says the estimate is no
         better), ``summary.json``, the report and the verdicts, into ``run.out``."""
@@ -86,10 +107,16 @@ class MoisstPipeline(VanillaPipeline):
         run, wall = self.stage_run, time.time() - self._started
         out, truth, rig = run.out, run.truth, run.rig
         optimizer = self.model.camera_optimizer
+        summary = {"method": trainer.config.method_name, "iterations": trainer.config.max_num_iterations, "wall_time_s": wall, "seed": run.seed}
+        # a sensor the NeRF held never moved in it: its convergence is its stage's (whose iterations open the history)
+        moving = {n: s for n, s in still_moving(Path(trainer.base_dir) / HISTORY_FILE).items() if n not in run.frozen}
+        if run.refined:
+            summary["refinement"] = self.judge_refinement(moving)
+            if not all(c["kept"] for c in summary["refinement"].values()):
+                trainer.save_checkpoint(step)  # a loaded run holds the stage's estimate of the cameras set back
         estimate = optimizer.rig.estimate()
         estimate.write(out / "calibration.json")
         steps = trainer.config.max_num_iterations
-        summary = {"method": trainer.config.method_name, "iterations": steps, "wall_time_s": wall, "seed": run.seed}
         if run.lidar is not None:
             summary["lidar_first"] = {n: {k: e[k] for k in ("wall_s", "weak", "change_from_prior") + (("errors_after",) if truth else ())}
                                       for n, e in run.lidar["sensors"].items()}
@@ -111,8 +138,6 @@ class MoisstPipeline(VanillaPipeline):
             if hit:
                 print(f"WARNING: {name} ran into its bound on {', '.join(hit)}: a runaway, do not trust its estimate")
                 summary.setdefault("hit_bounds", {})[name] = hit
-        # a sensor the NeRF held never moved in it: its convergence is its stage's (whose iterations open the history)
-        moving = {n: s for n, s in still_moving(Path(trainer.base_dir) / HISTORY_FILE).items() if n not in run.frozen}
         for name, spread in moving.items():
             print(f"WARNING: {name} is still moving over its last estimates ({spread}); run longer or check the data")
         summary["still_moving"] = moving

@@ -35,7 +35,10 @@ class CalibrationSwitches:
     .estimate_readout``: kept when its sigma is under 3 ms, else rig.json's is kept, as camera_registration.json says);
     the NeRF and calibration.json keep rig.json's readout."""
     camera_refinement: bool = False
-    """Let the NeRF move the registered cameras further (the paper's joint refinement) instead of holding them."""
+    """Let the NeRF move the registered cameras further (the paper's joint refinement, eq. 12) instead of holding
+    them; a fifth of each such camera's frames is held back from training, and a camera's refinement is kept only
+    where it renders those frames significantly better than the stage's estimate (``uncertainty.refinement_check``),
+    else the camera goes back to the stage's estimate."""
     map_range_mult: float = 0.0
     """After the LiDAR-first stage, supervise the rays of the cameras whose pose is known (the reference camera, the
     cameras the stages hold) with the calibrated LiDAR map's range, this weight per m^2 (``stages.map_range``); 0: off."""
@@ -56,7 +59,8 @@ class CalibrationSwitches:
 class StageRun:
     """What the stages leave for the NeRF and the checks after it: the dataset's ``rig``, ``truth`` (or None), ``prior``
     (rig.json's) and drive observability, each stage's summary (or None), the sensors a stage placed (``held``), those
-    the NeRF keeps there (``frozen``; ``all_held``: every non-reference sensor), and the run's ``out``, seed, resumption."""
+    the NeRF keeps there (``frozen``; ``all_held``: every non-reference sensor), those it refines from there
+    (``refined``), and the run's ``out``, seed, resumption."""
 
     rig: object
     truth: object
@@ -69,6 +73,7 @@ class StageRun:
     cameras: Optional[dict] = None
     held: dict = field(default_factory=dict)
     frozen: tuple = ()
+    refined: tuple = ()
     all_held: bool = False
 
 
@@ -143,8 +148,9 @@ def _cached(name: str, folders: Sequence[Optional[Path]]) -> Optional[dict]:
 def apply_stage_results(pipeline, run: StageRun) -> None:
     """The NeRF starts from the stages' estimate (the dataparser's ``prior_calibration``) and holds there the sensors
     they placed (LiDARs; cameras registered or held at their prior), unless ``camera_refinement`` lets the registered
-    cameras move; with every sensor held it only builds the scene (``fixed_calibration_scene``, ``scene_steps``).
-    Changes ``pipeline`` in place and sets ``run.held``, ``run.frozen``, ``run.all_held``."""
+    cameras move (with frames held back to judge it); with every sensor held it only builds the scene
+    (``fixed_calibration_scene``, ``scene_steps``). Changes ``pipeline`` in place and sets ``run.held``, ``run.frozen``,
+    ``run.refined``, ``run.all_held``."""
     if run.lidar is None and run.cameras is None:
         return
     rig, model = run.rig, pipeline.model
@@ -155,6 +161,8 @@ def apply_stage_results(pipeline, run: StageRun) -> None:
     cameras = {n: e for n, e in (run.cameras or {}).get("sensors", {}).items() if not e["kept_prior"] or e.get("held_there")}
     run.held = {**(run.lidar or {}).get("sensors", {}), **cameras}
     run.frozen = tuple(n for n in run.held if not pipeline.camera_refinement or rig.sensors[n].type == "lidar" or run.held[n].get("held_there"))
+    run.refined = tuple(n for n in run.held if n not in run.frozen)
+    pipeline.datamanager.held_back_sensors = run.refined
     run.all_held = len(run.frozen) == len(rig.sensors) - 1
     if run.all_held:  # nothing left to calibrate in the NeRF: it only builds the scene
         fixed_calibration_scene(pipeline)

@@ -137,6 +137,59 @@ def sensor_uncertainty(pipeline, sensor: int, seed: int) -> Optional[SensorUncer
         loss_prior=float(((at_prior - target) ** 2).mean()), rays=len(indices), frames=len(frames), wall_s=time.time() - start)
 
 
+REFINEMENT_P = 0.05
+"""A refinement is kept when a one-sided paired t-test over the held-back frames (their mean squared colour residual
+at the stages' estimate against at the refined one) gives a p-value under this."""
+
+
+@torch.no_grad()
+def refinement_check(pipeline, names: List[str], seed: int) -> Dict[str, dict]:
+    """Whether the NeRF's joint refinement of each camera of ``names`` renders its held-back frames (the datamanager's
+    ``held_back``: no training ray came from them) significantly better than the estimate it started from (the
+    stages', which the calibration optimiser holds as its prior: correction zero).
+
+    Args:
+        pipeline: the trained pipeline.
+        names: cameras the NeRF refined from a stage's estimate.
+        seed: seed of the pixel draws.
+
+    Returns:
+        ``{name: {"frames", "loss_refined", "loss_stage", "p_value", "kept"}}`` (losses: mean squared colour residual
+        over the held-back pixels); a camera without held-back frames is not kept.
+    """
+    from scipy.stats import ttest_rel
+
+    model, datamanager = pipeline.model, pipeline.datamanager
+    rig = model.camera_optimizer.rig
+    held = datamanager.held_back.cpu()
+    out = {}
+    for name in names:
+        sensor = rig.data.sensor_names.index(name)
+        frames = torch.nonzero(held & (model.camera_optimizer.frame_sensor.cpu() == sensor))[:, 0].tolist()
+        if len(frames) < 2:
+            out[name] = {"frames": len(frames), "loss_refined": None, "loss_stage": None, "p_value": None, "kept": False}
+            continue
+        indices, target = _draw_pixels(datamanager, frames, 4 * RAYS_PER_SENSOR, torch.Generator().manual_seed(seed * 1000 + sensor + 500))
+        was_training = model.training
+        model.eval()
+        try:
+            refined = _render(model, datamanager, indices)
+            saved = [(param, at, float(param[at])) for param, at in _param_views(rig, sensor)]
+            for param, at, _ in saved:
+                param[at] = 0.0
+            stage = _render(model, datamanager, indices)
+            for param, at, value in saved:
+                param[at] = value
+        finally:
+            model.train(was_training)
+        frame = indices[:, 0].numpy()
+        per_frame = [[float(((r[frame == f] - target[frame == f]) ** 2).mean()) for f in frames] for r in (refined, stage)]
+        p = float(ttest_rel(per_frame[1], per_frame[0], alternative="greater").pvalue)
+        out[name] = {"frames": len(frames), "loss_refined": float(np.mean(per_frame[0])), "loss_stage": float(np.mean(per_frame[1])),
+                     "p_value": p, "kept": bool(p < REFINEMENT_P)}
+    return out
+
+
 def nerf_uncertainties(pipeline, seed: int) -> Dict[str, SensorUncertainty]:
     """``sensor_uncertainty`` of every trainable camera of the run's rig (frozen and reference sensors skipped).
 

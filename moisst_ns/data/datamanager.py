@@ -31,6 +31,9 @@ REGISTRATION_REFERENCE_FRACTION = 0.5
 calibration, so the scene keeps being trained by a fair number of rays)."""
 MAP_RANGE_VOXEL = 0.05
 """Voxel of the LiDAR map behind the range targets (``map_range_sensors``), metres."""
+HELD_BACK_EVERY = 5
+"""Of each camera of ``held_back_sensors``, the training frames ``k`` with ``k % HELD_BACK_EVERY == 2`` (its 3rd,
+8th, ...: never its first, which the report renders) are held back: a fifth of its frames."""
 
 
 @dataclass
@@ -60,6 +63,9 @@ class MoisstDataManagerConfig(VanillaDataManagerConfig):
     NaN where the map has none): the rig's LiDAR scans placed at the prior calibration, seen from each frame at its
     prior pose (``stages.map_range``). Only cameras whose pose is known belong here: the reference camera, cameras
     held at a stage's estimate (``moisst-calibrate`` sets it), every camera at the truth (``moisst-floor``)."""
+    held_back_sensors: Tuple[str, ...] = ()
+    """Cameras some of whose frames (``HELD_BACK_EVERY``) no training ray comes from: the joint refinement of a
+    registered camera is kept only when it renders those frames significantly better (``uncertainty.refinement_check``)."""
 
 
 class MoisstDataManager(VanillaDataManager):
@@ -86,6 +92,7 @@ class MoisstDataManager(VanillaDataManager):
         self.lidar_generator = torch.Generator().manual_seed(int(kwargs.get("seed", 0)) + 12345)
         self.frame_readout, self.frame_height = frame_readouts(self.rig, full, self.train_dataset.cameras)
         self.map_range, self.map_slot = self._map_ranges()
+        self.held_back = held_back_frames(self.rig.sensor_names, self.rig.frame_sensor_index, config.held_back_sensors)
         if config.patch_size > 1:
             # nerfstudio 1.1.5's PatchPixelSampler rounds the batch with its default patch size (32) before it
             # takes ours, so e.g. 512 rays became 0: round again with the real patch size.
@@ -152,12 +159,13 @@ class MoisstDataManager(VanillaDataManager):
         if count <= 0:
             return None
         unit = max(getattr(sampler.config, "patch_size", 1), 1) ** 2
+        trained = ~self.held_back[image_batch["image_idx"].cpu()]
         if fraction is None:
-            return sample_images(sampler, image_batch, torch.arange(len(image_batch["image_idx"])), count)
-        is_ref = self.frame_is_reference[image_batch["image_idx"].cpu()].to(image_batch["image_idx"].device)
+            return sample_images(sampler, image_batch, torch.nonzero(trained)[:, 0], count)
+        is_ref = self.frame_is_reference[image_batch["image_idx"].cpu()]
         n_ref = int(round(count * fraction / unit)) * unit
         parts = []
-        for mask, n in ((is_ref, n_ref), (~is_ref, count - n_ref)):
+        for mask, n in ((is_ref & trained, n_ref), (~is_ref & trained, count - n_ref)):
             if n > 0 and bool(mask.any()):
                 parts.append(sample_images(sampler, image_batch, torch.nonzero(mask)[:, 0], n))
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
@@ -189,7 +197,7 @@ class MoisstDataManager(VanillaDataManager):
                      self._sample(self.single_pixel_sampler, image_batch, total - n_patch, fraction)]
             parts = [p for p in parts if p is not None]
             batch = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-        elif fraction is None or not isinstance(image_batch["image"], torch.Tensor):
+        elif not isinstance(image_batch["image"], torch.Tensor) or (fraction is None and not bool(self.held_back.any())):
             batch = self.train_pixel_sampler.sample(image_batch)
         else:
             batch = self._sample(self.train_pixel_sampler, image_batch, total, fraction)
@@ -233,6 +241,24 @@ def pixel_row_times(indices: Tensor, readout: Tensor, height: Tensor) -> Float[T
         rows = heights == h
         out[rows, 0] = row_time(y[rows] + 0.5, readout[image][rows], int(h))
     return out
+
+
+def held_back_frames(sensor_names, frame_sensor, held_back_sensors) -> Tensor:
+    """Which training frames no ray is drawn from: of each camera named in ``held_back_sensors``, its frames ``k`` with
+    ``k % HELD_BACK_EVERY == 2`` (``frame_sensor``: sensor index of every training frame, in order).
+
+    Returns:
+        (num_frames,) bool.
+    """
+    unknown = set(held_back_sensors) - set(sensor_names)
+    if unknown:
+        raise ValueError(f"held_back_sensors: {sorted(unknown)} not sensors of the rig {list(sensor_names)}")
+    sensor = [sensor_names[i] for i in frame_sensor]
+    held, seen = torch.zeros(len(sensor), dtype=torch.bool), {}
+    for i, name in enumerate(sensor):
+        k = seen[name] = seen.get(name, -1) + 1
+        held[i] = name in held_back_sensors and k % HELD_BACK_EVERY == 2
+    return held
 
 
 def sample_images(sampler, image_batch: Dict, positions: Tensor, count: int) -> Dict:
