@@ -88,6 +88,18 @@ def _render(model, datamanager, indices: torch.Tensor) -> torch.Tensor:
     return torch.cat(out)
 
 
+def _render_at_prior(model, datamanager, sensor: int, indices: torch.Tensor) -> torch.Tensor:
+    """``_render`` with camera ``sensor``'s corrections at zero (its prior), restored after."""
+    saved = [(param, at, float(param[at])) for param, at in _param_views(model.camera_optimizer.rig, sensor)]
+    for param, at, _ in saved:
+        param[at] = 0.0
+    try:
+        return _render(model, datamanager, indices)
+    finally:
+        for param, at, value in saved:
+            param[at] = value
+
+
 @torch.no_grad()
 def sensor_uncertainty(pipeline, sensor: int, seed: int) -> Optional[SensorUncertainty]:
     """Standard deviations and held-back losses of camera ``sensor`` (None when it has no training frame).
@@ -121,12 +133,7 @@ def sensor_uncertainty(pipeline, sensor: int, seed: int) -> Optional[SensorUncer
             minus = _render(model, datamanager, indices)
             param[at] = value
             columns.append(((plus - minus) / (2 * h)).reshape(-1).numpy())
-        saved = [(param, at, float(param[at])) for param, at in _param_views(rig, sensor)]
-        for param, at, _ in saved:
-            param[at] = 0.0
-        at_prior = _render(model, datamanager, indices)
-        for param, at, value in saved:
-            param[at] = value
+        at_prior = _render_at_prior(model, datamanager, sensor, indices)
     finally:
         model.train(was_training)
     residuals = (base - target).reshape(-1).numpy().astype(np.float64)
@@ -174,12 +181,7 @@ def refinement_check(pipeline, names: List[str], seed: int) -> Dict[str, dict]:
         model.eval()
         try:
             refined = _render(model, datamanager, indices)
-            saved = [(param, at, float(param[at])) for param, at in _param_views(rig, sensor)]
-            for param, at, _ in saved:
-                param[at] = 0.0
-            stage = _render(model, datamanager, indices)
-            for param, at, value in saved:
-                param[at] = value
+            stage = _render_at_prior(model, datamanager, sensor, indices)
         finally:
             model.train(was_training)
         frame = indices[:, 0].numpy()
