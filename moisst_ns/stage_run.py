@@ -11,6 +11,12 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 
+REFINEMENT_START = 0.5
+"""With ``camera_refinement`` and every sensor placed by a stage, the share of the run during which the scene trains
+with every sensor held at the stages' estimate before the refined cameras are released (the schedule built to find
+cameras from their priors, a reference-only warm-up and a detached registration, ran registered cameras 20-80 cm off)."""
+
+
 class CalibrationError(ValueError):
     """A calibration that cannot start or had to stop; the message is one line naming file/option and problem."""
 
@@ -166,6 +172,9 @@ def apply_stage_results(pipeline, run: StageRun) -> None:
     run.all_held = len(run.frozen) == len(rig.sensors) - 1
     if run.all_held:  # nothing left to calibrate in the NeRF: it only builds the scene
         fixed_calibration_scene(pipeline)
+    elif run.refined and len(run.held) == len(rig.sensors) - 1:  # refinement only: the scene first, at the stages' estimate
+        fixed_calibration_scene(pipeline)
+        model.calibration_warmup_steps = int(REFINEMENT_START * model.schedule_steps)
     stage = run.cameras if run.cameras else run.lidar
     file = stage.get("file") or run.out / ("camera_registration" if run.cameras else "lidar_first") / "calibration.json"
     pipeline.datamanager.dataparser.prior_calibration = Path(file).resolve()  # config.yml keeps it: loading the run needs it
