@@ -80,7 +80,7 @@ class MoisstPipeline(VanillaPipeline):
     def judge_refinement(self, moving: dict) -> dict:
         """Keep the NeRF's refinement of a registered camera only when it renders the camera's held-back frames
         significantly better than the stage's estimate, stays within 3 sigma of the stage's estimate on every parameter
-        (the map's evidence: the held-back frames alone preferred refinements that ran 20-42 cm off, the scene having
+        (the map's evidence: the held-back frames alone preferred refinements that ran 19-42 cm off, the scene having
         followed them) and has settled; otherwise the camera goes back to the stage's estimate (the optimiser's prior)
         and counts as held there (``run.frozen``; removed from ``moving``)."""
         from moisst_ns.rig.trust import PARAMETERS, parameter_difference

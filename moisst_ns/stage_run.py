@@ -14,7 +14,7 @@ from typing import Optional, Sequence
 REFINEMENT_START = 0.5
 """With ``camera_refinement`` and every sensor placed by a stage, the share of the run during which the scene trains
 with every sensor held at the stages' estimate before the refined cameras are released (the schedule built to find
-cameras from their priors, a reference-only warm-up and a detached registration, ran registered cameras 20-80 cm off)."""
+cameras from their priors, a reference-only warm-up and a detached registration, ran registered cameras 19-82 cm off)."""
 
 
 class CalibrationError(ValueError):
@@ -43,8 +43,9 @@ class CalibrationSwitches:
     camera_refinement: bool = False
     """Let the NeRF move the registered cameras further (the paper's joint refinement, eq. 12) instead of holding
     them; a fifth of each such camera's frames is held back from training, and a camera's refinement is kept only
-    where it renders those frames significantly better than the stage's estimate (``uncertainty.refinement_check``),
-    else the camera goes back to the stage's estimate."""
+    where it renders those frames significantly better than the stage's estimate, stays within the stage's 3 sigma and
+    has settled (``MoisstPipeline.judge_refinement``), else the camera goes back to the stage's estimate. Off: measured,
+    it never helped (docs/lab/2026-11-27-refinement.md)."""
     map_range_mult: float = 0.0
     """After the LiDAR-first stage, supervise the rays of the cameras whose pose is known (the reference camera, the
     cameras the stages hold) with the calibrated LiDAR map's range, this weight per m^2 (``stages.map_range``); 0: off."""
