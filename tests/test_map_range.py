@@ -20,6 +20,17 @@ def test_a_point_lands_in_its_pixel_with_its_euclidean_range():
     assert np.isfinite(image).sum() == 1
 
 
+def test_a_distorted_camera_puts_the_point_where_its_lens_images_it():
+    # x = 0.5, y = -0.25, r = 0.3125; k1 = -0.5: factor 0.84375 -> u = 10 * 0.421875 + 4 = 8.22 (column 8, not the
+    # pinhole's 9), v = 10 * -0.2109 + 3 = 0.89 (row 0); k2 = 0.2 adds 0.2 r^2 = 0.0195 to the factor: u = 8.32
+    for distortion, column in (((-0.5, 0.0, 0.0, 0.0, 0.0, 0.0), 8), ((-0.5, 0.2, 0.0, 0.0, 0.0, 0.0), 8), ((0.0,) * 6, 9)):
+        image = range_image(np.array([[1.0, -0.5, 2.0]]), 10.0, 10.0, 4.0, 3.0, 12, 6, window=1, distortion=distortion)
+        assert image[0, column] == pytest.approx(np.sqrt(1 + 0.25 + 4), rel=1e-6) and np.isfinite(image).sum() == 1
+    # tangential: p1 = 0.1 moves x by 2 p1 x y = -0.025 (u = 8.75, column 8) and y by p1 (r + 2 y^2) = 0.04375 (v = 0.94)
+    image = range_image(np.array([[1.0, -0.5, 2.0]]), 10.0, 10.0, 4.0, 3.0, 12, 6, window=1, distortion=(0.0, 0.0, 0.0, 0.0, 0.1, 0.0))
+    assert np.isfinite(image[0, 8]) and np.isfinite(image).sum() == 1
+
+
 def test_the_nearest_point_of_a_pixel_wins_and_points_behind_or_outside_are_dropped():
     points = np.array([[0.0, 0.0, 4.0], [0.0, 0.0, 3.0], [0.0, 0.0, -3.0], [100.0, 0.0, 1.0]])
     image = range_image(points, 10.0, 10.0, 2.5, 2.5, 5, 5, window=1)

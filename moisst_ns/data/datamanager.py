@@ -123,10 +123,7 @@ class MoisstDataManager(VanillaDataManager):
         points = self.rig.world.points_to_model(torch.from_numpy(world)).numpy()
         cameras = self.train_dataset.cameras
         sensor = [self.rig.sensor_names[i] for i in self.rig.frame_sensor_index]
-        frames = [i for i, n in enumerate(sensor) if n in names and not bool(cameras.distortion_params[i].abs().gt(0).any())]
-        skipped = sorted({sensor[i] for i, n in enumerate(sensor) if n in names} - {sensor[i] for i in frames})
-        if skipped:
-            CONSOLE.print(f"LiDAR map ranges: {skipped} left out (lens distortion: the ranges are computed for pinholes)")
+        frames = [i for i, n in enumerate(sensor) if n in names]
         slot = torch.full((len(sensor),), -1, dtype=torch.long)
         if not frames:
             return None, None
@@ -136,8 +133,8 @@ class MoisstDataManager(VanillaDataManager):
         for row, i in enumerate(frames):
             rolling = self.frame_readout is not None and bool(self.frame_readout[i] > 0)
             cam = rolling_camera_points(self.rig, i, float(self.frame_readout[i]), world) if rolling else opengl_to_opencv(c2w[i], points)
-            image = range_image(cam, float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]),
-                                float(cameras.cy[i]), int(cameras.width[i]), int(cameras.height[i]))
+            image = range_image(cam, float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]), float(cameras.cy[i]),
+                                int(cameras.width[i]), int(cameras.height[i]), distortion=cameras.distortion_params[i].tolist())
             ranges[row, : image.shape[0], : image.shape[1]] = torch.from_numpy(image)
             slot[i] = row
         covered = float(torch.isfinite(ranges).float().mean())

@@ -14,23 +14,30 @@ filter of LiDAR depth projections). No nerfstudio import.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 from jaxtyping import Float
 from scipy.ndimage import minimum_filter
 
+from moisst_ns.rig.distortion import opencv_distort
+
 
 def range_image(points: Float[np.ndarray, "num 3"], fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-                window: int = 5, tolerance: float = 0.1, layer: float = 0.02) -> Float[np.ndarray, "height width"]:
+                window: int = 5, tolerance: float = 0.1, layer: float = 0.02,
+                distortion: Sequence[float] = (0.0,) * 6) -> Float[np.ndarray, "height width"]:
     """The range of the front surface in each pixel, occluded ranges removed.
 
     Args:
         points: points in the camera's frame (OpenCV axes: x right, y down, z forward), any unit.
-        fx, fy, cx, cy: pinhole intrinsics, pixels (``u = fx x / z + cx``; pixel column ``i`` spans ``[i, i + 1)``).
+        fx, fy, cx, cy: pinhole intrinsics, pixels (``u = fx x' + cx`` with ``x'`` the distorted ``x / z``; pixel
+            column ``i`` spans ``[i, i + 1)``).
         width, height: image size, pixels.
         window: side of the neighbourhood of the occlusion filter, pixels (1: no filter).
         tolerance: a pixel's range is dropped when a range in its neighbourhood is nearer than ``range / (1 + tolerance)``.
         layer: the pixel's range is the mean over its points within ``1 + layer`` times its nearest one (the
             nearest alone is biased short on a slanted surface: 0.7 % of the range at 64x48 pixels, measured).
+        distortion: OPENCV lens distortion ``k1, k2, k3, k4, p1, p2`` (nerfstudio's ``distortion_params`` order).
 
     Returns:
         Euclidean range from the camera centre per pixel, in the unit of ``points`` (float32); NaN where no point
@@ -39,8 +46,9 @@ def range_image(points: Float[np.ndarray, "num 3"], fx: float, fy: float, cx: fl
     z = points[:, 2]
     front = z > 1e-6
     pts = points[front]
-    u = np.floor(fx * pts[:, 0] / pts[:, 2] + cx).astype(np.int64)
-    v = np.floor(fy * pts[:, 1] / pts[:, 2] + cy).astype(np.int64)
+    x, y = opencv_distort(pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2], *map(float, distortion))
+    u = np.floor(fx * x + cx).astype(np.int64)
+    v = np.floor(fy * y + cy).astype(np.int64)
     inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
     pixel = v[inside] * width + u[inside]
     rng = np.linalg.norm(pts[inside], axis=1)
