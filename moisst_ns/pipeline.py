@@ -118,7 +118,8 @@ class MoisstPipeline(VanillaPipeline):
         run, wall = self.stage_run, time.time() - self._started
         out, truth, rig = run.out, run.truth, run.rig
         optimizer = self.model.camera_optimizer
-        summary = {"method": trainer.config.method_name, "iterations": trainer.config.max_num_iterations, "wall_time_s": wall, "seed": run.seed}
+        steps = trainer.config.max_num_iterations
+        summary = {"method": trainer.config.method_name, "iterations": steps, "wall_time_s": wall, "seed": run.seed}
         # a sensor the NeRF held never moved in it: its convergence is its stage's (whose iterations open the history)
         moving = {n: s for n, s in still_moving(Path(trainer.base_dir) / HISTORY_FILE).items() if n not in run.frozen}
         if run.refined:
@@ -127,7 +128,6 @@ class MoisstPipeline(VanillaPipeline):
                 trainer.save_checkpoint(step)  # a loaded run holds the stage's estimate of the cameras set back
         estimate = optimizer.rig.estimate()
         estimate.write(out / "calibration.json")
-        steps = trainer.config.max_num_iterations
         if run.lidar is not None:
             summary["lidar_first"] = {n: {k: e[k] for k in ("wall_s", "weak", "change_from_prior") + (("errors_after",) if truth else ())}
                                       for n, e in run.lidar["sensors"].items()}
