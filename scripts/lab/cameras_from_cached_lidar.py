@@ -1,0 +1,44 @@
+"""The camera stage alone, the LiDAR stage read from a ``moisst-calibrate`` OUT (its lidar_first/), or none on a rig
+without a LiDAR; prints each camera's error (docs/lab/2026-11-27-reference-motion.md).
+
+Usage: PYTHONPATH=. .venv/bin/python scripts/lab/cameras_from_cached_lidar.py RIG [OUT] [--set name=value ...]
+(``OWN_ONLY_UNPAIRED=1`` in the environment with docs/lab/2026-11-27-own-pairs.patch applied: the own-pairs rule).
+"""
+
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from camera_stage import config_from  # noqa: E402
+
+from moisst_ns.rig.calibration import calibration_report_errors  # noqa: E402
+from moisst_ns.rig.format import Calibration, load_calibration, load_rig  # noqa: E402
+from moisst_ns.stages.camera.camera_registration import register_cameras  # noqa: E402
+
+
+def main() -> None:
+    args = sys.argv[1:]
+    rig_dir, cache = Path(args.pop(0)), None
+    if args and not args[0].startswith("--"):
+        cache = Path(args.pop(0))
+    config = config_from(args[1:] if args and args[0] == "--set" else [])
+    rig, truth = load_rig(rig_dir), load_calibration(rig_dir / "ground_truth.json")
+    if cache:
+        calibration = load_calibration(cache / "lidar_first" / "calibration.json")
+        undetermined = {k: v["undetermined"] for k, v in json.loads((cache / "lidar_first" / "lidar_first.json").read_text())["sensors"].items()}
+    else:
+        calibration, undetermined = Calibration.from_rig(rig), None
+    start = time.time()
+    result = register_cameras(rig, calibration, config, lidar_undetermined=undetermined, log=print)
+    print(rig_dir, "map", result.map_source, f"{time.time() - start:.0f} s")
+    errors = calibration_report_errors(result.calibration, truth)
+    for name, r in result.cameras.items():
+        e = errors[name]
+        print(f"  {name:<16} {e['translation_cm']:7.3f} cm {e['rotation_deg']:7.4f} deg {e['time_ms']:7.3f} ms",
+              "prior kept: " + r.note if r.kept_prior else "accepted")
+
+
+if __name__ == "__main__":
+    main()
