@@ -10,6 +10,7 @@ import json
 import os
 import shutil
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,7 +20,7 @@ from scipy.spatial.transform import Rotation as R
 
 def main() -> None:
     root, out = sys.argv[1], sys.argv[2] if len(sys.argv) > 2 else None
-    rig = json.load(open(f"{root}/rig.json"))
+    rig = json.loads(Path(root, "rig.json").read_text())
     cam = rig["reference_sensor"]
     s = rig["sensors"][cam]
     K = np.array([[s["fl_x"], 0, s["cx"]], [0, s["fl_y"], s["cy"]], [0, 0, 1]])
@@ -59,7 +60,7 @@ def main() -> None:
         shutil.rmtree(out, ignore_errors=True)
         shutil.copytree(root, out, copy_function=os.link, ignore=shutil.ignore_patterns(rig["trajectory"]))
         q = (R.from_quat(poses[:, 4:8]) * R.from_rotvec([fit.x[0], fit.x[1], 0.0])).as_quat()
-        np.savetxt(f"{out}/{rig['trajectory']}", np.c_[poses[:, :4], q], fmt="%.9f", header=open(f"{root}/{rig['trajectory']}").readline().lstrip("# ").rstrip())
+        np.savetxt(f"{out}/{rig['trajectory']}", np.c_[poses[:, :4], q], fmt="%.9f", header=Path(root, rig["trajectory"]).read_text().splitlines()[0].lstrip("# "))
 
 
 if __name__ == "__main__":
