@@ -31,6 +31,17 @@ def test_a_distorted_camera_puts_the_point_where_its_lens_images_it():
     assert np.isfinite(image[0, 8]) and np.isfinite(image).sum() == 1
 
 
+def test_a_point_far_outside_the_image_does_not_fold_back_into_it_through_the_lens():
+    # x = 1.55 (56 deg off axis), k1 = -0.5: factor 1 - 0.5 * 1.55^2 = -0.20, so the polynomial puts it at u = 0.88
+    # (column 0) although the pinhole puts it at u = 19.5, beyond the image's 50 % margin: no range there
+    point = np.array([[3.1, 0.0, 2.0]])
+    image = range_image(point, 10.0, 10.0, 4.0, 3.0, 12, 6, window=1, distortion=(-0.5, 0.0, 0.0, 0.0, 0.0, 0.0))
+    assert not np.isfinite(image).any()
+    # a point inside the image still goes through the lens: x = 0.5, factor 0.875, u = 8.38 (column 8, row 3)
+    near = range_image(np.array([[1.0, 0.0, 2.0]]), 10.0, 10.0, 4.0, 3.0, 12, 6, window=1, distortion=(-0.5, 0.0, 0.0, 0.0, 0.0, 0.0))
+    assert np.isfinite(near[3, 8])
+
+
 def test_the_nearest_point_of_a_pixel_wins_and_points_behind_or_outside_are_dropped():
     points = np.array([[0.0, 0.0, 4.0], [0.0, 0.0, 3.0], [0.0, 0.0, -3.0], [100.0, 0.0, 1.0]])
     image = range_image(points, 10.0, 10.0, 2.5, 2.5, 5, 5, window=1)

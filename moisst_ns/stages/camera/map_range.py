@@ -44,12 +44,14 @@ def range_image(points: Float[np.ndarray, "num 3"], fx: float, fy: float, cx: fl
         projects or the pixel's surface is occluded.
     """
     z = points[:, 2]
-    front = z > 1e-6
-    pts = points[front]
-    x, y = opencv_distort(pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2], *map(float, distortion))
-    u = np.floor(fx * x + cx).astype(np.int64)
-    v = np.floor(fy * y + cy).astype(np.int64)
+    pts = points[z > 1e-6]
+    x, y = pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2]
+    # the lens polynomial folds back far outside the image: only points within a 50 % margin of it go through it
+    near = (np.abs(fx * x + cx - 0.5 * width) < width) & (np.abs(fy * y + cy - 0.5 * height) < height)
+    pts, (x, y) = pts[near], opencv_distort(x[near], y[near], *map(float, distortion))
+    u, v = np.floor(fx * x + cx), np.floor(fy * y + cy)
     inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    u, v = u.astype(np.int64), v.astype(np.int64)
     pixel = v[inside] * width + u[inside]
     rng = np.linalg.norm(pts[inside], axis=1)
     nearest_in_pixel = np.full(height * width, np.inf)
