@@ -7,7 +7,7 @@ from typing import Any, List, Mapping, Sequence, Tuple
 import numpy as np
 from jaxtyping import Bool, Float, UInt8
 
-from moisst_ns.rig.distortion import opencv_distort
+from moisst_ns.rig.distortion import near_image, opencv_distort
 
 
 COLORMAP = "turbo"
@@ -50,9 +50,7 @@ def project_points(
     k1, k2, k3, k4, p1, p2 = (float(intrinsics.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
     valid = front
     if any((k1, k2, k3, k4, p1, p2)):
-        # The distortion polynomial folds back far outside the image: only trust it near the image (50 % margin).
-        u0, v0 = fx * x + cx, fy * y + cy
-        valid = valid & (u0 > -0.5 * w) & (u0 < 1.5 * w) & (v0 > -0.5 * h) & (v0 < 1.5 * h)
+        valid = valid & near_image(x, y, fx, fy, cx, cy, w, h)  # the polynomial folds back beyond
         x, y = opencv_distort(x, y, k1, k2, k3, k4, p1, p2)
     u, v = fx * x + cx, fy * y + cy
     uv = np.stack([u, v], axis=-1)

@@ -25,3 +25,20 @@ def opencv_distort(x: Array, y: Array, k1: float, k2: float, k3: float, k4: floa
     r = x * x + y * y
     d = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)))
     return x * d + 2.0 * p1 * x * y + p2 * (r + 2.0 * x * x), y * d + 2.0 * p2 * x * y + p1 * (r + 2.0 * y * y)
+
+
+def near_image(x: Array, y: Array, fx: float, fy: float, cx: float, cy: float, width: float, height: float) -> Array:
+    """Which undistorted normalised coordinates lie within a 50 % margin of the image (pinhole pixels in
+    ``(-w/2, 3w/2) x (-h/2, 3h/2)``): the distortion polynomial folds back far outside the image, so only these may be
+    trusted through ``opencv_distort``.
+
+    Args:
+        x, y: undistorted normalised coordinates.
+        fx, fy, cx, cy: pinhole intrinsics, pixels.
+        width, height: image size, pixels.
+
+    Returns:
+        Boolean mask of the input's type (False for non-finite coordinates).
+    """
+    u, v = fx * x + cx, fy * y + cy
+    return (u > -0.5 * width) & (u < 1.5 * width) & (v > -0.5 * height) & (v < 1.5 * height)

@@ -20,7 +20,7 @@ import numpy as np
 from jaxtyping import Float
 from scipy.ndimage import minimum_filter
 
-from moisst_ns.rig.distortion import opencv_distort
+from moisst_ns.rig.distortion import near_image, opencv_distort
 
 
 def range_image(points: Float[np.ndarray, "num 3"], fx: float, fy: float, cx: float, cy: float, width: int, height: int,
@@ -46,8 +46,7 @@ def range_image(points: Float[np.ndarray, "num 3"], fx: float, fy: float, cx: fl
     z = points[:, 2]
     pts = points[z > 1e-6]
     x, y = pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2]
-    # the lens polynomial folds back far outside the image: only points within a 50 % margin of it go through it
-    near = (np.abs(fx * x + cx - 0.5 * width) < width) & (np.abs(fy * y + cy - 0.5 * height) < height)
+    near = near_image(x, y, fx, fy, cx, cy, width, height)  # the lens polynomial folds back beyond
     pts, (x, y) = pts[near], opencv_distort(x[near], y[near], *map(float, distortion))
     u, v = np.floor(fx * x + cx), np.floor(fy * y + cy)
     inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
