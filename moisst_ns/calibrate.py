@@ -135,10 +135,10 @@ def calibrate_trainer_config(cfg: CalibrateConfig, root: Path, out: Path, steps:
 
 def scene_only_steps(cfg: CalibrateConfig) -> int:
     """The NeRF's run length when the stages hold every sensor: ``--scene-steps``, else ``--max-num-iterations``, else
-    a third of the method's default."""
-    from moisst_ns.method_configs import DEFAULT_ITERATIONS
+    the method's ``SCENE_STEPS``."""
+    from moisst_ns.method_configs import SCENE_STEPS
 
-    return cfg.scene_steps or cfg.max_num_iterations or DEFAULT_ITERATIONS[cfg.method] // 3
+    return cfg.scene_steps or cfg.max_num_iterations or SCENE_STEPS[cfg.method]
 
 
 def run_calibration(cfg: CalibrateConfig) -> Path:

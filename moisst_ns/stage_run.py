@@ -46,13 +46,14 @@ class CalibrationSwitches:
     where it renders those frames significantly better than the stage's estimate, stays within the stage's 3 sigma and
     has settled (``MoisstPipeline.judge_refinement``), else the camera goes back to the stage's estimate. Off: measured,
     it never helped (docs/lab/2026-11-27-refinement.md)."""
-    map_range_mult: float = 0.0
+    map_range_mult: float = 10.0
     """After the LiDAR-first stage, supervise the rays of the cameras whose pose is known (the reference camera, the
-    cameras the stages hold) with the calibrated LiDAR map's range, this weight per m^2 (``stages.map_range``); 0: off."""
+    cameras the stages hold) with the calibrated LiDAR map's range, this weight per m^2 (``stages.map_range``): the
+    scene then agrees with the LiDAR in every camera's view, not only the reference camera's; 0: off."""
     scene_steps: Optional[int] = None
     """Training steps of the NeRF when the stages hold every sensor (it then calibrates nothing and only builds the
     scene for the viewer, the report and the uncertainty pass). ``moisst-calibrate``: --max-num-iterations when given,
-    else a third of the method's default (500 for ``moisst-lite``); ``ns-train``: the run's length when omitted."""
+    else ``method_configs.SCENE_STEPS`` (2000 for ``moisst-lite``); ``ns-train``: the run's length when omitted."""
     uncertainty: bool = True
     """After training, measure every camera's 7 standard deviations and its held-back loss against the prior
     (``moisst_ns.uncertainty``; a few seconds per camera): into calibration.json with a verdict per sensor.

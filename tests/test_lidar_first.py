@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import roma
 import torch
+import yaml
 
 from moisst_ns.cli.lidar_calibrate import LidarCalibrateConfig, run_lidar_calibration
 from moisst_ns.rig.calibration import calibration_report_errors
@@ -321,10 +322,18 @@ def test_calibrate_runs_the_stage_first_and_holds_the_lidar(tiny_rigs, tmp_path)
     assert summary["lidar_first"]["lidar"]["errors_after"]["translation_cm"] < 1.0
     # the stage's iterations open the history, but a held LiDAR never moved in the NeRF: not "still moving"
     assert "lidar" not in summary["still_moving"] and summary["verdicts"]["lidar"].get("verdict") != "not converged"
+    # by default the LiDAR map's range supervises the rays of every camera whose pose is known: the reference camera
+    # and the cameras the stages hold (registered, or held at their prior), and no other
+    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    registered = json.loads((out / "camera_registration" / "camera_registration.json").read_text())["sensors"]
+    held = [n for n, e in registered.items() if not e["kept_prior"] or e.get("held_there")]
+    assert config.pipeline.model.map_range_mult == 10.0
+    assert sorted(config.pipeline.datamanager.map_range_sensors) == sorted(["cam_front", *held])
 
     plain = tmp_path / "plain"
-    run_calibration(CalibrateConfig(dataset=dataset, output_dir=plain, max_num_iterations=4, seed=0, threads=2, report=False, lidar_first=False))
+    plain_config = run_calibration(CalibrateConfig(dataset=dataset, output_dir=plain, max_num_iterations=4, seed=0, threads=2, report=False, lidar_first=False))
     assert not (plain / "lidar_first").exists() and "lidar_first" not in json.loads((plain / "summary.json").read_text())
+    assert yaml.load(plain_config.read_text(), Loader=yaml.Loader).pipeline.datamanager.map_range_sensors == ()  # no stage placed the LiDAR
 
 
 def test_release_check_flags_a_wrong_held_time_offset(tiny_rigs):

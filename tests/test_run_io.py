@@ -184,7 +184,7 @@ def test_scene_only_run_length_when_the_stages_hold_every_sensor():
     from moisst_ns.calibrate import scene_only_steps
 
     rig = Path("rig")
-    assert scene_only_steps(CalibrateConfig(dataset=rig)) == 500
+    assert scene_only_steps(CalibrateConfig(dataset=rig)) == 2000
     assert scene_only_steps(CalibrateConfig(dataset=rig, method="moisst")) == 10000
     assert scene_only_steps(CalibrateConfig(dataset=rig, max_num_iterations=600)) == 600
     assert scene_only_steps(CalibrateConfig(dataset=rig, max_num_iterations=600, scene_steps=50)) == 50
