@@ -37,6 +37,15 @@ def test_projection_matches_opencv_model():
     np.testing.assert_allclose(z.numpy(), cam[:, 2])
 
 
+def test_a_point_far_outside_the_image_does_not_fold_back_into_it_through_the_lens():
+    # k1 = -0.5: x = 1.55 (56 deg off axis) has the factor 1 - 0.5 * 1.55^2 = -0.20, so the polynomial alone puts it at
+    # u = 10 * -0.31 + 4 = 0.9, inside the 12-pixel image; its pinhole pixel, u = 19.5, is beyond the 50 % margin and is kept
+    model = PinholeModel(10.0, 10.0, 4.0, 3.0, 12, 6, (-0.5, 0.0, 0.0, 0.0, 0.0, 0.0))
+    uv, _ = project(model, torch.tensor([[3.1, 0.0, 2.0], [1.0, 0.0, 2.0]], dtype=torch.float64))
+    assert uv[0, 0].item() == pytest.approx(19.5) and uv[0, 1].item() == pytest.approx(3.0)
+    assert uv[1, 0].item() == pytest.approx(10 * 0.5 * 0.875 + 4)  # inside: through the lens (x = 0.5, factor 0.875)
+
+
 def test_pixel_jacobian_matches_finite_differences():
     """d pixel / d theta (forward mode through eq. 1, 2, 12) equals central differences, time offset included."""
     import roma

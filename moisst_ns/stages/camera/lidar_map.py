@@ -17,7 +17,7 @@ import torch
 from jaxtyping import Bool, Float, Int, UInt8
 from torch import Tensor
 
-from moisst_ns.rig.distortion import opencv_distort
+from moisst_ns.rig.distortion import near_image, opencv_distort
 from moisst_ns.rig.format import Calibration, Rig, RigFormatError, load_lidar_scan
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, place_points
@@ -105,13 +105,16 @@ def project(model: PinholeModel, cam: Float[Tensor, "num 3"]) -> Tuple[Float[Ten
 
     Returns:
         (``(u, v)`` pixels, continuous from the top-left corner; depth ``z``, metres). Points with ``z <= 0`` get
-        finite but meaningless pixels: mask them with the depth.
+        finite but meaningless pixels: mask them with the depth. A point beyond the image's 50 % margin keeps its
+        pinhole pixel, outside the image (``rig.distortion.near_image``: the lens polynomial folds back there).
     """
     z = cam[:, 2]
     safe = torch.where(z > 1e-6, z, torch.ones_like(z))
     x, y = cam[:, 0] / safe, cam[:, 1] / safe
     if any(model.distortion):
-        x, y = opencv_distort(x, y, *model.distortion)
+        near = near_image(x, y, model.fx, model.fy, model.cx, model.cy, model.width, model.height)
+        xd, yd = opencv_distort(x, y, *model.distortion)
+        x, y = torch.where(near, xd, x), torch.where(near, yd, y)
     return torch.stack([model.fx * x + model.cx, model.fy * y + model.cy], dim=-1), z
 
 
