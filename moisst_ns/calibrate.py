@@ -28,9 +28,6 @@ class SceneRunConfig:
     """Random seed (sampling, initialisation)."""
     threads: Optional[int] = None
     """torch CPU threads (pin for bit-repeatable runs); torch's default when omitted."""
-    depth_loss_per_m2: Optional[float] = None
-    """LiDAR depth loss on the depth error in metres with this weight per m^2 (same meaning on every rig); the
-    method's normalised-depth loss (the paper's) when omitted."""
     verbose: bool = False
     """Show every third-party warning and banner (by default the known-harmless ones are hidden:
     ``moisst_ns.quiet``)."""
@@ -88,13 +85,6 @@ def rig_trainer_config(method: str, steps: Optional[int], root: Path, out: Path,
     return config
 
 
-def apply_scene_switches(model, depth_loss_per_m2: Optional[float]) -> None:
-    """The scene switch shared by ``moisst-calibrate`` and ``moisst-floor`` (None: the method's default): the
-    metric depth loss weight per m^2 (``model``: the model config, changed in place)."""
-    if depth_loss_per_m2 is not None:
-        model.depth_loss_units, model.depth_loss_mult = "metric", depth_loss_per_m2
-
-
 def calibrate_trainer_config(cfg: CalibrateConfig, root: Path, out: Path, steps: Optional[int]):
     """``moisst-calibrate``'s trainer config: the method's for ``steps`` (its default when None) on the dataset
     ``root``, writing to ``out``, with the command line ``cfg``'s switches; ``CalibrationError`` when they leave
@@ -102,7 +92,6 @@ def calibrate_trainer_config(cfg: CalibrateConfig, root: Path, out: Path, steps:
     config = rig_trainer_config(cfg.method, steps, root, out, "run", cfg.seed)
     pipeline = config.pipeline
     model, datamanager = pipeline.model, pipeline.datamanager
-    apply_scene_switches(model, cfg.depth_loss_per_m2)
     if not cfg.depth_loss:
         model.depth_loss_mult = 0.0
     if not cfg.dssim_loss:

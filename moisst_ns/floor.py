@@ -20,7 +20,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from moisst_ns.calibrate import SceneRunConfig, apply_scene_switches, rig_trainer_config
+from moisst_ns.calibrate import SceneRunConfig, rig_trainer_config
 from moisst_ns.stage_run import fixed_calibration_scene, map_range_settings, seed_everything
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
@@ -237,7 +237,6 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
     config.vis = "tensorboard"
     model, datamanager = config.pipeline.model, config.pipeline.datamanager
     config.pipeline = VanillaPipelineConfig(datamanager=datamanager, model=model)  # the scene alone: no stages, no calibration.json
-    apply_scene_switches(model, cfg.depth_loss_per_m2)
     if cfg.map_range_mult > 0 and any(s.type == "lidar" for s in rig.sensors.values()):
         datamanager.dataparser.prior_calibration = rig.root / "ground_truth.json"  # the map and the frames at the truth
         map_range_settings(config.pipeline, cfg.map_range_mult, [n for n, s in rig.sensors.items() if s.type == "camera"])

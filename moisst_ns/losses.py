@@ -49,20 +49,17 @@ def depth_smoothness_loss(depth: Float[Tensor, "num_patches patch patch"]) -> Fl
     return (dx + dy).mean()
 
 
-def lidar_depth_loss(expected_depth: Float[Tensor, "num_rays"], measured_range: Float[Tensor, "num_rays"],
-                     units_per_metre: float = 1.0) -> Float[Tensor, ""]:
+def lidar_depth_loss(expected_depth: Float[Tensor, "num_rays"], measured_range: Float[Tensor, "num_rays"]) -> Float[Tensor, ""]:
     """Paper eq. 7: squared error between the rendered (expected) depth of a LiDAR ray and the measured range.
 
     Args:
-        expected_depth: volume-rendered expected distance along each unit-direction LiDAR ray.
+        expected_depth: volume-rendered expected distance along each unit-direction LiDAR ray (model units).
         measured_range: the LiDAR's range for that ray, same units.
-        units_per_metre: how many of those units make a metre (the dataparser's ``world_scale`` for model units);
-            the error is divided by it, so the loss is in square metres (1: in the input's own units, the paper's).
 
     Returns:
-        The mean squared error.
+        The mean squared error, in those units squared (the paper's normalised depths).
     """
-    return ((expected_depth - measured_range.to(expected_depth)) / units_per_metre).pow(2).mean()
+    return (expected_depth - measured_range.to(expected_depth)).pow(2).mean()
 
 
 def map_range_loss(expected_depth: Float[Tensor, "num_rays"], map_range: Float[Tensor, "num_rays"], units_per_metre: float,

@@ -84,13 +84,10 @@ class MoisstModelConfig(NerfactoModelConfig):
     """(start, end) steps of a BARF-style release of the hash levels: before ``start`` only
     ``COARSE_TO_FINE_START_LEVELS`` levels are on, at ``end`` all; (0, 0) disables it."""
     depth_loss_mult: float = 20.0
-    """lambda_D of paper eq. 13: weight of the LiDAR depth loss (L2 on the expected ray depth, ``depth_loss_units``).
-    Model units are metres x the dataparser's ``world_scale``, so per square metre it is ``lambda_D * world_scale**2``
+    """lambda_D of paper eq. 13: weight of the LiDAR depth loss (L2 on the expected ray depth in model units, the
+    paper's normalised depths). Model units are metres x the dataparser's ``world_scale``, so per square metre it is ``lambda_D * world_scale**2``
     and falls with the drive's extent (0.03 on the 50-frame synthetic rig; moisst-floor measured a five-fold lower
     floor with 500 on the tiny rig)."""
-    depth_loss_units: Literal["model", "metric"] = "model"
-    """Units of the depth loss: ``model`` (the paper's, normalised depths) or ``metric`` (the depth error in metres,
-    so ``depth_loss_mult`` is per m^2 on every rig)."""
     map_range_mult: float = 0.0
     """Weight per square metre of the metric depth loss of camera rays against the LiDAR map's range
     (``losses.map_range_loss``, Huber at 0.2 m), on the rays of the datamanager's ``map_range_sensors`` (cameras whose
@@ -357,9 +354,8 @@ class MoisstModel(NerfactoModel):
             loss_dict["map_range_loss"] = ramp * self.config.map_range_mult * map_range_loss(
                 camera["expected_depth"][:, 0], batch["map_range"], float(self.camera_optimizer.world_scale))
         if self.training and lidar is not None and "lidar_range" in batch and ramp > 0:
-            scale = float(self.camera_optimizer.world_scale) if self.config.depth_loss_units == "metric" else 1.0
             loss_dict["depth_loss"] = ramp * self.config.depth_loss_mult * lidar_depth_loss(
-                outputs["expected_depth"][lidar, 0], batch["lidar_range"], units_per_metre=scale)
+                outputs["expected_depth"][lidar, 0], batch["lidar_range"])
         if self.training:
             for name, value in loss_dict.items():
                 if not bool(torch.isfinite(value).all()):

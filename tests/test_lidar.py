@@ -130,12 +130,3 @@ def test_scan_empty_after_range_filter_is_an_error(tmp_path):
     data, full = write_rig(tmp_path, np.array([[0.2, 0, 0], [0, 0.5, 0]], dtype=np.float32))
     with pytest.raises(RigFormatError, match="no points left"):
         load_lidar_points(data, full, 1.0, 80.0)
-
-
-def test_metric_depth_loss_is_the_same_on_every_world_scale():
-    """With ``units_per_metre`` the loss is the squared error in metres, whatever the normalisation of the world."""
-    metres_pred, metres_true = torch.tensor([10.0, 20.0]), torch.tensor([10.5, 19.0])
-    expected = ((0.5**2) + (1.0**2)) / 2
-    for scale in (0.03, 0.5, 2.0):
-        assert float(lidar_depth_loss(scale * metres_pred, scale * metres_true, units_per_metre=scale)) == pytest.approx(expected, rel=1e-5)
-    assert float(lidar_depth_loss(0.03 * metres_pred, 0.03 * metres_true)) == pytest.approx(expected * 0.03**2, rel=1e-5)
