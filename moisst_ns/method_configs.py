@@ -25,8 +25,9 @@ from moisst_ns.schedules import rescale_schedules
 DEFAULT_ITERATIONS = {"moisst": 30000, "moisst-lite": 1500}
 SCENE_STEPS = {"moisst": 10000, "moisst-lite": 2000}
 """``moisst-calibrate``'s NeRF steps when the stages hold every sensor (the scene only): at 500 the rendered depth ran
-2.2-2.7 m short of the LiDAR's at the reference camera; at 2000, with the LiDAR map's range, 0.09-0.27 m on idealised
-and realistic street and plaza rigs (docs/lab/2026-11-23-metric-scene.md)."""
+2.2-2.7 m from the LiDAR's at the reference camera; at 2000, with the LiDAR map's range, 0.09-0.27 m on idealised
+street and plaza and realistic street rigs, 2.4 m on a realistic plaza whose LiDAR the stage left 71 cm off
+(docs/lab/2026-11-23-metric-scene.md)."""
 
 
 def _adam_decay(lr: float, steps: int, weight_decay: float = 0.0, final_factor: float = 1e-2) -> dict:
