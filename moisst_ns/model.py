@@ -86,8 +86,8 @@ class MoisstModelConfig(NerfactoModelConfig):
     depth_loss_mult: float = 20.0
     """lambda_D of paper eq. 13: weight of the LiDAR depth loss (L2 on the expected ray depth in model units, the
     paper's normalised depths). Model units are metres x the dataparser's ``world_scale``, so per square metre it is
-    ``lambda_D * world_scale**2`` and falls with the drive's extent (0.03 on the 50-frame synthetic rig; moisst-floor measured a five-fold lower
-    floor with 500 on the tiny rig)."""
+    ``lambda_D * world_scale**2`` and falls with the drive's extent (0.03 on the 50-frame synthetic rig; moisst-floor
+    measured a five-fold lower floor with 500 on the tiny rig)."""
     map_range_mult: float = 0.0
     """Weight per square metre of the metric depth loss of camera rays against the LiDAR map's range
     (``losses.map_range_loss``, Huber at 0.2 m), on the rays of the datamanager's ``map_range_sensors`` (cameras whose
