@@ -1,6 +1,6 @@
 """Stock nerfacto (``moisst_ns.bench.baseline``: the preset's field, sampling and camera rays, no pose optimiser)
 trained on a rig at its rig.json poses, for the training-PSNR comparison of issue 36 (docs/lab/2026-11-23-metric-scene.md,
-2026-11-28 entry). Give it the rig written with ``--perturb none`` (rig.json = the truth): the same images.
+"2026-11-27 (evening)"). Give it the rig written with ``--perturb none`` (rig.json = the truth): the same images.
 
 Usage: .venv/bin/python scripts/lab/stock_nerfacto.py RIG OUT STEPS; then scripts/lab/train_psnr.py OUT
 """
