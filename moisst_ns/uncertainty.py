@@ -224,12 +224,14 @@ def trust_entry(sigma: Optional[List[float]], verdict: str, weak: List[str], rea
 
 def _lidar_stage_sigma(entry: dict):
     """A LiDAR's sigma from its LiDAR-first record (trust order; m, rad, s) and where it comes from: the formal one,
-    at least half the split-half difference and the release check's spread where those ran."""
+    at least half the split-half difference and the release check's spread where those ran, and the prior's sigma for
+    a parameter held at the prior (``lidar_first.held_sigma``)."""
     sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
     if entry.get("sigma_split_half"):  # the two halves of the drive fitted apart
         sigma, source = list(np.fmax(sigma, [np.nan if v is None else v for v in entry["sigma_split_half"]])), "LiDAR-first formal and split-half"
-    if entry.get("held_check"):  # the free parameters' spread when the held ones are released
-        sigma, source = list(np.fmax(sigma, entry["held_check"]["sigma_release"])), source + " and release"
+    if entry.get("held_check"):  # the free parameters' spread when the held ones are released; the held ones' prior sigma
+        check = entry["held_check"]
+        sigma, source = list(np.fmax(np.fmax(sigma, check["sigma_release"]), check.get("sigma_held", np.zeros(7)))), source + " and release"
     return sigma, source
 
 
