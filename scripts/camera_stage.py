@@ -3,6 +3,7 @@ against the map; prints every sensor's error and each camera's sigma, and writes
 (x, y, z, roll, pitch, yaw, time offset; m, rad, s) to JSON for coverage tables (docs/method.md, docs/uncertainty.md).
 
 Usage: .venv/bin/python scripts/camera_stage.py RIG [RIG ...] [--json OUT.json] [--set points_per_frame=1500 ...] [--lidar-map]
+(``--set estimate_readout=true`` prints each camera's fitted readout time and the one it uses.)
 """
 
 from __future__ import annotations
@@ -64,6 +65,10 @@ def run(folder: Path, config: CameraRegistrationConfig, lidar_map: bool = False)
             record[name] = {"error": error.tolist(), "sigma": [r.sigma[j] if np.isfinite(r.sigma[j]) else None for j in TRUST_ORDER], "kept": r.kept_prior,
                             "note": r.note, "wall_s": r.wall_s, "errors": e}
             line += f"  {'prior kept: ' + (r.note or 'held-back check') if r.kept_prior else 'accepted'}"
+            if r.readout_estimate is not None:  # --set estimate_readout=true
+                line += (f"; readout {r.readout_time * 1000:.2f} ms used (fit {r.readout_estimate * 1000:.2f} ms, sigma {r.readout_sigma * 1000:.2f} ms"
+                         + (f": {r.readout_note}" if r.readout_note else "") + ")")
+                record[name].update(readout_time=r.readout_time, readout_estimate=r.readout_estimate, readout_sigma=r.readout_sigma)
         print(line)
     return record
 
