@@ -486,3 +486,27 @@ def test_without_a_lidar_a_camera_sharing_no_view_with_the_reference_keeps_its_p
     assert "shares no view with cam_front" in side.note and "the rig has no LiDAR" in side.note
     np.testing.assert_array_equal(result.calibration.T_ref_sensor["cam_left"], start.T_ref_sensor["cam_left"])
     assert result.calibration.time_offset["cam_left"] == start.time_offset["cam_left"]
+
+
+def test_the_finest_level_runs_once_when_both_starts_end_in_one_basin(rig_folder):
+    """With a feature start the coarse levels descend from it and from the prior; when they end within ``stop_px`` of
+    each other the finest level (the stage's most costly) runs once, from the lower-cost one: its history then holds
+    each coarse level once and the finest level after them. A start 0.2 rad away ends elsewhere: both are finished."""
+    from moisst_ns.stages.camera.camera_registration import load_camera, register_camera
+    from moisst_ns.stages.camera.feature_start import FeatureStart
+    from moisst_ns.stages.camera.lidar_map import lidar_map, pyramid_factors
+    from moisst_ns.stages.camera.photometric import Registration
+
+    rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
+    config = CameraRegistrationConfig(outer_iterations=2, fine_iterations=2, fine_points_per_frame=600, split_half=False)
+    world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
+    factors = pyramid_factors(96, config.min_width)
+    camera, reference = load_camera(rig, "cam_front_right", factors), load_camera(rig, rig.reference_sensor, factors)
+    for theta, merged in ((np.full(7, 1e-7), True), (np.r_[0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0], False)):
+        lines = []
+        problem = Registration(ReferenceTrajectory.of(rig), world, camera, reference, truth, config)
+        result = register_camera(problem, config, lines.append, None, FeatureStart(theta, 5, 100, 1.0, "test"))
+        assert any("one basin" in line for line in lines) is merged, lines
+        assert any("final cost" in line for line in lines) is not merged, lines
+        levels = [h["level"] for h in result.history]
+        assert levels == sorted(levels, reverse=True) and levels[-1] == 1, levels

@@ -60,6 +60,18 @@ def test_interpolation_hits_samples_exactly_and_is_piecewise():
     assert torch.allclose(roma.rotmat_to_rotvec(end[:3, :3])[2], torch.tensor(-1.0, dtype=F64))
 
 
+def test_placing_points_by_rodrigues_is_eq1_applied_to_them():
+    times, rot, trans, omega, velocity = constant_twist_trajectory()
+    traj = ReferenceTrajectory(times, rot, trans)
+    t = np.array([-0.35, -0.05, 0.0, 0.1, 0.123, 0.25, 0.5, 0.61, 1.2])  # before, inside, at a sample, after
+    points = np.random.default_rng(0).normal(size=(len(t), 3)) * 20
+    rot_true, trans_true = closed_form(torch.from_numpy(t), omega, velocity)
+    expected = torch.einsum("nij,nj->ni", rot_true, torch.from_numpy(points)) + trans_true
+    assert np.allclose(traj.place(t, points), expected.numpy(), atol=1e-10)
+    rot_n, trans_n, _, _ = traj.pose_and_rates(t)
+    assert np.allclose(traj.place(t, points), np.einsum("nij,nj->ni", rot_n, points) + trans_n, atol=1e-10)
+
+
 def test_time_derivative_is_the_segment_velocity():
     times, rot, trans, omega, velocity = constant_twist_trajectory()
     t = torch.tensor([-0.2, 0.17, 0.33, 0.9], dtype=F64, requires_grad=True)

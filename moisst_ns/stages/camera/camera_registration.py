@@ -117,14 +117,17 @@ def _pixel_motion(problem: Registration, theta: np.ndarray, step: np.ndarray, ac
     return float(np.sqrt(np.nanmean(np.sum((a - b) ** 2, axis=1))))
 
 
-def _descend(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None], theta: np.ndarray) -> tuple:
-    """Coarse to fine from ``theta``: ``(theta, history, (residuals, Jacobian, valid, pairs) of the last solve, {level
-    factor: the corrections at the end of that level})``."""
-    start = time.perf_counter()
+def _descend(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None], theta: np.ndarray,
+             factors: Optional[Sequence[int]] = None, so_far: Optional[tuple] = None) -> tuple:
+    """Coarse to fine from ``theta`` over the pyramid levels ``factors`` (None: all): ``(theta, history, (residuals,
+    Jacobian, valid, pairs) of the last solve, {level factor: the corrections at the end of that level})``; ``so_far``:
+    such a tuple of the coarser levels, which this call continues."""
     name = problem.camera.sensor
     theta = np.r_[theta, np.zeros(len(_active(config)) - len(theta))]
-    theta, history, last, level_end = np.where(_active(config), theta, 0.0), [], None, {}
-    for factor in sorted(problem.camera.levels, reverse=True):
+    theta = np.where(_active(config), theta, 0.0)
+    history, last, level_end = ([], None, {}) if so_far is None else (list(so_far[1]), so_far[2], dict(so_far[3]))
+    start = time.perf_counter() - (history[-1]["elapsed_s"] if history else 0.0)
+    for factor in sorted(problem.camera.levels, reverse=True) if factors is None else factors:
         finest = factor == min(problem.camera.levels)
         active = _active(config, factor in sorted(problem.camera.levels)[:READOUT_LEVELS])
         for outer in range(config.fine_iterations if finest else config.outer_iterations):
@@ -219,6 +222,20 @@ def _with_readout(result: CameraResult, theta: np.ndarray, sigma: np.ndarray, co
                    readout_time=result.readout_prior if note else estimate)
 
 
+def _same_basin(problem: Registration, config: CameraRegistrationConfig, coarse: Sequence[tuple], factor: int,
+                log: Callable[[str], None]) -> bool:
+    """Whether the feature start's and the prior's descents (``_descend`` over the coarse levels) ended within
+    ``stop_px`` of each other's projections at level ``factor`` (the descent's own convergence test): then the finest
+    level, the stage's most costly, is run once, from the lower-cost of the two."""
+    (theta_a, *_rest), (theta_b, _, (_, _, _, pairs), _) = coarse
+    active = _active(config)
+    apart = _pixel_motion(problem, theta_a, (theta_a - theta_b)[active], active, pairs, factor)
+    same = apart < config.stop_px
+    log(f"[camera-registration] {problem.camera.sensor}: the feature and prior starts end {apart:.3f} px apart at 1/{factor} "
+        f"resolution{': one basin, the finest level runs once' if same else ''}")
+    return bool(same)
+
+
 def _started(initial: Optional[FeatureStart]) -> str:
     return "prior" if initial is None else (f"prior ({initial.note})" if initial.theta is None else
                                             f"features ({initial.frames} frames, {initial.matches} matches, RMS {initial.rms_px:.2f} px)")
@@ -234,7 +251,13 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
     if initial is None or initial.theta is None:
         return _guarded(problem, config, floor_cost, _descend(problem, config, log, np.zeros(len(_active(config)))), _started(initial),
                         time.perf_counter() - start)
-    descents = [(_descend(problem, config, log, initial.theta), _started(initial)), (_descend(problem, config, log, np.zeros(len(_active(config)))), "prior")]
+    factors = sorted(problem.camera.levels, reverse=True)
+    coarse = [_descend(problem, config, log, theta, factors[:-1]) for theta in (initial.theta, np.zeros(len(_active(config))))]
+    if len(factors) > 1 and _same_basin(problem, config, coarse, factors[-2], log):
+        k = int(np.argmin([c[1][-1]["cost"] for c in coarse]))
+        descent = _descend(problem, config, log, coarse[k][0], factors[-1:], coarse[k])
+        return _guarded(problem, config, floor_cost, descent, (_started(initial), "prior")[k], time.perf_counter() - start)
+    descents = [(_descend(problem, config, log, c[0], factors[-1:], c), begun) for c, begun in zip(coarse, (_started(initial), "prior"))]
     costs = [d[1][-1]["cost"] for d, _ in descents]
     order = np.argsort(costs, kind="stable")
     log(f"[camera-registration] {problem.camera.sensor}: final cost {costs[0]:.4f} from the features, {costs[1]:.4f} from the prior")

@@ -65,7 +65,7 @@ class CameraModel:
         ext = calibrated_extrinsic(self.prior, theta[:3], theta[3:6])
         t = self.stamps[frame] + self.prior_offset + theta[6] + tau
         ref = self.traj(t, cached=True)
-        q = torch.einsum("nji,nj->ni", ref[:, :3, :3], points - ref[:, :3, 3])
+        q = world_to_camera(ref, points)
         return t, ref, q, (q - ext[:3, 3]) @ ext[:3, :3], ext
 
     def camera_points(self, theta: Float[np.ndarray, "p"], points: Float[np.ndarray, "num 3"], frame: Int[np.ndarray, "num"]) -> Float[np.ndarray, "num 3"]:

@@ -110,9 +110,8 @@ def place_points(traj: ReferenceTrajectory, ext: Extrinsic, points: Float[np.nda
     Returns:
         World points, metres.
     """
-    rot, trans, _, _ = trajectory_at(traj, times, ext.time_offset)
-    ref = points @ ext.rotation.T + ext.translation
-    return np.einsum("nij,nj->ni", rot, ref) + trans
+    at = times.unique[times.index] if isinstance(times, PointTimes) else np.asarray(times)
+    return traj.place(at + ext.time_offset, points @ ext.rotation.T + ext.translation)
 
 
 def placement_jacobian(

@@ -20,7 +20,7 @@ from moisst_ns.rig.format import Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_times
 from moisst_ns.rig.trust import finite_or_none
 from moisst_ns.stages.lidar.lidar_edges import scan_edges
-from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, place_points
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, place_points, trajectory_at
 from moisst_ns.stages.camera.lidar_map import ImageStack, PinholeModel, bilinear, project, read_grey, visible
 from moisst_ns.stages.camera.photometric import huber_costs
 
@@ -142,9 +142,15 @@ def view_residuals(traj: ReferenceTrajectory, ext: Extrinsic, scans, view: Refer
     projection that leaves the image reads the border: scoring it otherwise made fits gain by pushing points out of the
     image. With a rolling shutter each point is seen from its row's pose (``reference_camera``)."""
     world = place_points(traj, ext.updated(increment), scans.points[rows.point], scans.times[rows.point])
-    uv = project(view.distance.model, torch.from_numpy(reference_camera(traj, view, rows.frame, world)))[0].numpy()
+    return edge_distances(traj, view, rows.frame, world)
+
+
+def edge_distances(traj: ReferenceTrajectory, view: ReferenceView, frame: Int[np.ndarray, "rows"],
+                   world: Float[np.ndarray, "rows 3"]) -> Float[np.ndarray, "rows"]:
+    """``view_residuals`` of world points (metres) already placed, each seen in its reference frame ``frame``."""
+    uv = project(view.distance.model, torch.from_numpy(reference_camera(traj, view, frame, world)))[0].numpy()
     limit = np.array([view.distance.model.width, view.distance.model.height], dtype=np.float64) - 0.5 - 1e-6
-    return bilinear(view.distance, rows.frame, np.clip(np.nan_to_num(uv, nan=0.5), 0.5, limit))[0]
+    return bilinear(view.distance, frame, np.clip(np.nan_to_num(uv, nan=0.5), 0.5, limit))[0]
 
 
 @dataclass
@@ -251,12 +257,18 @@ def search_held(traj: ReferenceTrajectory, ext: Extrinsic, scans, shared: Shared
     Returns:
         The accepted columns, their increment and sigma (``ViewSearch``).
     """
-    evaluations = 0
+    evaluations, at_times = 0, {}
 
     def distances(rows: ViewRows, increment: np.ndarray) -> np.ndarray:
+        """``view_residuals``, with the trajectory evaluated once per row set: the search never moves the time offset."""
         nonlocal evaluations
         evaluations += 1
-        return view_residuals(traj, ext, scans, shared.view, rows, increment)
+        if id(rows) not in at_times:
+            at_times[id(rows)] = (rows, scans.points[rows.point], trajectory_at(traj, scans.times[rows.point], ext.time_offset)[:2])
+        _, points, (rotation, position) = at_times[id(rows)]
+        moved = ext.updated(increment)
+        return edge_distances(traj, shared.view, rows.frame,
+                              np.einsum("nij,nj->ni", rotation, points @ moved.rotation.T + moved.translation) + position)
 
     def increment_of(cols: List[int], values: np.ndarray) -> np.ndarray:
         increment = np.zeros(7)
