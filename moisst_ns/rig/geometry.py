@@ -131,7 +131,8 @@ class ReferenceTrajectory:
     def place(self, t: Float[np.ndarray, "num"], points: Float[np.ndarray, "num 3"]) -> Float[np.ndarray, "num 3"]:
         """Eq. 1 applied to reference-frame points (metres) seen at times ``t`` (seconds since ``t0``): ``R(t) q +
         p(t)``, as ``pose_and_rates`` but with ``Exp(a w_k)`` applied to each point by Rodrigues' formula and ``R_k``
-        per segment (no matrix per point: 4x faster on a million LiDAR points)."""
+        per segment (no matrix per point: on KITTI 0048's 1.3 M points the LiDAR stage peaks at 1.07 GB, 1.50 GB with
+        a matrix per point, 1.40 GB with ``roma.quat_action``'s intermediates)."""
         seg, alpha = self._segments(t)
         rotvec = alpha[:, None] * self.steps().numpy()[seg]
         angle = np.linalg.norm(rotvec, axis=1, keepdims=True)
