@@ -113,7 +113,9 @@ def main() -> None:
                 va, _, oka = bilinear(stack, ra, project(model, torch.from_numpy(camera_points(world, ra)))[0].numpy())
                 vb, _, okb = bilinear(stack, rb, project(model, torch.from_numpy(camera_points(world, rb)))[0].numpy())
                 ok = oka & okb
-                line.append(f"{v:+.3f}: {1 - np.corrcoef(va[ok], vb[ok])[0, 1]:.4f}")
+                r = np.abs(va - vb)[ok]
+                huber = np.where(r < args.huber, 0.5 * r**2, args.huber * (r - 0.5 * args.huber)).mean()
+                line.append(f"{v:+.3f}: Huber {huber:.4f}, 1 - r {1 - np.corrcoef(va[ok], vb[ok])[0, 1]:.4f}")
             print(f"profile 1/{factor} col {col} ({len(rp)} rows): " + "  ".join(line), flush=True)
         return
     for factor in sorted(camera.levels, reverse=True):
