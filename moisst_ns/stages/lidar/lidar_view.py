@@ -137,20 +137,20 @@ def view_rows(traj: ReferenceTrajectory, ext: Extrinsic, scans, view: ReferenceV
 
 
 def view_residuals(traj: ReferenceTrajectory, ext: Extrinsic, scans, view: ReferenceView, rows: ViewRows,
-                   increment: Float[np.ndarray, "7"]) -> Float[np.ndarray, "rows"]:
+                   increment: Float[np.ndarray, "7"], at: Optional[tuple] = None) -> Float[np.ndarray, "rows"]:
     """Distance (pixels) from each row's projection at ``ext.updated(increment)`` to the nearest image edge. A
     projection that leaves the image reads the border: scoring it otherwise made fits gain by pushing points out of the
-    image. With a rolling shutter each point is seen from its row's pose (``reference_camera``)."""
-    world = place_points(traj, ext.updated(increment), scans.points[rows.point], scans.times[rows.point])
-    return edge_distances(traj, view, rows.frame, world)
-
-
-def edge_distances(traj: ReferenceTrajectory, view: ReferenceView, frame: Int[np.ndarray, "rows"],
-                   world: Float[np.ndarray, "rows 3"]) -> Float[np.ndarray, "rows"]:
-    """``view_residuals`` of world points (metres) already placed, each seen in its reference frame ``frame``."""
-    uv = project(view.distance.model, torch.from_numpy(reference_camera(traj, view, frame, world)))[0].numpy()
+    image. With a rolling shutter each point is seen from its row's pose (``reference_camera``). ``at``: the
+    trajectory's ``(world_R_ref, world_t_ref)`` at the rows' times and ``ext``'s time offset (``trajectory_at``),
+    when the caller keeps it for increments that leave the time offset alone (``search_held``); else evaluated here."""
+    moved = ext.updated(increment)
+    if at is None or increment[6] != 0:
+        at = trajectory_at(traj, scans.times[rows.point], moved.time_offset)[:2]
+    rotation, position = at
+    world = np.einsum("nij,nj->ni", rotation, scans.points[rows.point] @ moved.rotation.T + moved.translation) + position
+    uv = project(view.distance.model, torch.from_numpy(reference_camera(traj, view, rows.frame, world)))[0].numpy()
     limit = np.array([view.distance.model.width, view.distance.model.height], dtype=np.float64) - 0.5 - 1e-6
-    return bilinear(view.distance, frame, np.clip(np.nan_to_num(uv, nan=0.5), 0.5, limit))[0]
+    return bilinear(view.distance, rows.frame, np.clip(np.nan_to_num(uv, nan=0.5), 0.5, limit))[0]
 
 
 @dataclass
@@ -260,15 +260,13 @@ def search_held(traj: ReferenceTrajectory, ext: Extrinsic, scans, shared: Shared
     evaluations, at_times = 0, {}
 
     def distances(rows: ViewRows, increment: np.ndarray) -> np.ndarray:
-        """``view_residuals``, with the trajectory evaluated once per row set: the search never moves the time offset."""
+        """``view_residuals`` with the trajectory evaluated once per row set (the search never moves the time offset;
+        the rows are kept with it so that their ``id`` is not reused)."""
         nonlocal evaluations
         evaluations += 1
         if id(rows) not in at_times:
-            at_times[id(rows)] = (rows, scans.points[rows.point], trajectory_at(traj, scans.times[rows.point], ext.time_offset)[:2])
-        _, points, (rotation, position) = at_times[id(rows)]
-        moved = ext.updated(increment)
-        return edge_distances(traj, shared.view, rows.frame,
-                              np.einsum("nij,nj->ni", rotation, points @ moved.rotation.T + moved.translation) + position)
+            at_times[id(rows)] = (rows, trajectory_at(traj, scans.times[rows.point], ext.time_offset)[:2])
+        return view_residuals(traj, ext, scans, shared.view, rows, increment, at_times[id(rows)][1])
 
     def increment_of(cols: List[int], values: np.ndarray) -> np.ndarray:
         increment = np.zeros(7)
