@@ -61,6 +61,10 @@ class CalibrationSwitches:
     report: bool = True
     """Write diagnostics to OUT/report: LiDAR points over the images with prior vs calibrated extrinsics, the same over
     a model render, convergence plots, report.md (same as ``moisst-report``)."""
+    stages_from: Optional[Path] = None
+    """A ``moisst-calibrate`` OUT or ``ns-train`` run folder of the same rig whose stages' results this run loads
+    instead of running the stages (e.g. the stages on a CPU machine, the NeRF on a GPU one); its sensors must be the
+    rig's. Omitted: the stages run (a resumed run loads its own)."""
 
 
 @dataclass
@@ -133,23 +137,30 @@ def prepare_stages(pipeline, out: Path, seed: int, resume_from: Optional[Path]) 
     options = dict(max_time_offset=opt.max_time_offset, seed=seed, estimate_extrinsic=opt.optimize_extrinsics,
                    estimate_time_offset=opt.optimize_time_offsets)
     cache = (out, resume_from, resume_from.parent.parent) if resume_from else ()  # ns-train's run folder, moisst-calibrate's OUT
+    cache = (pipeline.stages_from,) if pipeline.stages_from else cache
     if pipeline.lidar_first:
-        run.lidar = _cached("lidar_first", cache) or run_lidar_first(rig, run.prior, run.truth, out, options)
+        run.lidar = _cached("lidar_first", cache, rig) or run_lidar_first(rig, run.prior, run.truth, out, options)
         if pipeline.camera_registration:
             camera_options = dict(options, estimate_readout=pipeline.estimate_readout)
-            run.cameras = _cached("camera_registration", cache) or run_camera_registration(rig, run.lidar, run.truth, out, camera_options)
+            run.cameras = _cached("camera_registration", cache, rig) or run_camera_registration(rig, run.lidar, run.truth, out, camera_options)
     apply_stage_results(pipeline, run)
     seed_everything(seed)
     return run
 
 
-def _cached(name: str, folders: Sequence[Optional[Path]]) -> Optional[dict]:
+def _cached(name: str, folders: Sequence[Optional[Path]], rig) -> Optional[dict]:
     """A stage's summary from the first of ``folders`` holding ``<name>/<name>.json`` (its calibration.json beside it,
-    as ``"file"``), or None (not cached: the stage runs)."""
+    as ``"file"``), or None (not cached: the stage runs). Raises ``CalibrationError`` when it names a sensor that
+    ``rig`` does not have (another rig's stages)."""
     for folder in folders:
-        if folder is not None and (Path(folder) / name / f"{name}.json").is_file():
-            print(f"{name}: loaded from {Path(folder) / name} (a resumed run does not run its stages again)")
-            return dict(json.loads((Path(folder) / name / f"{name}.json").read_text()), file=Path(folder) / name / "calibration.json")
+        summary = Path(folder or "") / name / f"{name}.json"
+        if folder is not None and summary.is_file():
+            print(f"{name}: loaded from {summary.parent} (not run again)")
+            loaded = json.loads(summary.read_text())
+            unknown = sorted(set(loaded.get("sensors", {})) - set(rig.sensors))
+            if unknown:
+                raise CalibrationError(f"{summary}: sensors: {', '.join(unknown)} not in {rig.root / 'rig.json'} (another rig's stages)")
+            return dict(loaded, file=summary.parent / "calibration.json")
     return None
 
 

@@ -107,6 +107,28 @@ def test_same_seed_same_calibration(short_run, tmp_path):
         assert abs(first.time_offset[name] - second.time_offset[name]) < 1e-6  # 1e-3 ms
 
 
+def test_stages_loaded_from_another_run_give_its_calibration(short_run, tmp_path):
+    """``--stages-from OUT`` (the stages on one machine, the NeRF on another): the stages are loaded, not run, and the
+    run ends with the calibration of the run that ran them (same seed); another rig's stages are refused in one line."""
+    rig, out, _, _ = short_run
+    run_calibration(CalibrateConfig(dataset=rig, output_dir=tmp_path / "loaded", max_num_iterations=12, seed=3, stages_from=out))
+    assert not (tmp_path / "loaded" / "camera_registration").exists()
+    first, second = load_calibration(out / "calibration.json"), load_calibration(tmp_path / "loaded" / "calibration.json")
+    for name in first.T_ref_sensor:
+        assert np.abs(first.T_ref_sensor[name] - second.T_ref_sensor[name]).max() < 1e-5
+        assert abs(first.time_offset[name] - second.time_offset[name]) < 1e-6
+    other = tmp_path / "other" / "camera_registration"
+    other.mkdir(parents=True)
+    summary = json.loads((out / "camera_registration" / "camera_registration.json").read_text())
+    summary["sensors"] = {"ghost": next(iter(summary["sensors"].values()))}
+    (other / "camera_registration.json").write_text(json.dumps(summary))
+    result = subprocess.run([str(BIN / "moisst-calibrate"), str(rig), "--output-dir", str(tmp_path / "o"), "--stages-from",
+                             str(other.parent)], capture_output=True, text=True)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1] == (f"moisst-calibrate: error: {other / 'camera_registration.json'}: sensors: "
+                                                      f"ghost not in {rig / 'rig.json'} (another rig's stages)")
+
+
 def test_still_moving_flags_a_drifting_sensor(tmp_path):
     from moisst_ns.runs.history import still_moving
 
