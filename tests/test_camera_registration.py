@@ -311,6 +311,31 @@ def test_own_partners_are_farther_apart_at_the_finest_level(rig_folder):
         assert gap.min() >= baseline and gap.max() < baseline + steps.max(), (factor, gap.min(), gap.max())
 
 
+def test_a_camera_sharing_the_reference_view_pairs_a_point_with_the_reference_or_its_own_frames_not_both(rig_folder):
+    """``shared_view_share``: the forward-right camera, most of whose points find a reference partner, gives such a point
+    no own partner (its pairs then do not pass through the trajectory); with the share set above its own it does; the side
+    camera's points find no reference partner at the same instant here (it keeps its own partners)."""
+    from moisst_ns.stages.camera.camera_registration import load_camera
+    from moisst_ns.stages.camera.lidar_map import lidar_map
+    from moisst_ns.stages.camera.photometric import Registration
+
+    rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
+    world = lidar_map(rig, truth, 0.05, 2.0, lambda s: None)
+    traj, reference = ReferenceTrajectory.of(rig), load_camera(rig, rig.reference_sensor, [1])
+
+    def both(name, share):
+        config = CameraRegistrationConfig(shared_view_share=share)
+        pairs = Registration(traj, world, load_camera(rig, name, [1]), reference, truth, config).pairs(np.zeros(7), 1, 200)
+        key = lambda rows: set(zip(pairs.frame_a[rows].tolist(), map(tuple, pairs.points[rows].round(6).tolist())))
+        return pairs.shared, len(key(pairs.own) & key(~pairs.own)), int(pairs.own.sum())
+
+    shared, overlap, own = both("cam_front_right", 0.5)
+    assert shared > 0.5 and overlap == 0 and own > 0
+    assert both("cam_front_right", shared + 0.01)[1] > 0
+    shared, _, own = both("cam_left", 0.5)
+    assert shared < 0.5 and own > 0
+
+
 def test_the_finest_level_samples_enough_points_that_its_minimum_does_not_hang_on_the_draw(rig_folder):
     """The finest level's minimum moves with the drawn map points (image structure, not pixel noise, makes the
     residuals): solved from the truth on three independent draws, the side camera's estimates spread less with

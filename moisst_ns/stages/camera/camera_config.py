@@ -46,6 +46,13 @@ class CameraRegistrationConfig:
     fine_baseline: float = 3.0
     """The same at the finest pyramid level (0: ``own_baseline``): more parallax sharpens the along-track terms
     (measured: docs/lab/2026-11-23-camera-registration.md, "Farther own partners")."""
+    shared_view_share: float = 0.5
+    """When at least this share of a camera's sampled map points find their reference partner in the reference frame
+    nearest in time (the camera shares the reference camera's view at the same instant), a point with a reference
+    partner takes no own partner: pairs of one instant do not pass through the reference trajectory, whose noise,
+    drift and turn the own pairs (frames metres apart) carry into the estimate (docs/lab/2026-11-27-reference-motion.md,
+    2026-11-28). A camera under it (a side camera that sees the reference camera's view only over time) keeps its own
+    partners for every point. Above 1: own partners for every point of every camera."""
     held_back_points: int = 300
     """Map points per frame of the held-back check (estimate vs prior), drawn afresh after the fit."""
     max_translation: float = 2.0

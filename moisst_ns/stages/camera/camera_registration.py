@@ -145,7 +145,7 @@ def _descend(problem: Registration, config: CameraRegistrationConfig, log: Calla
             if len(theta) > 7:
                 history[-1]["readout_time"] = problem.model.readout + float(theta[7])
             log(f"[camera-registration] {name}: 1/{factor} resolution, iteration {outer}: {int(ok.sum())} pairs, "
-                f"cost {history[-1]['cost']:.4f}, {evaluations} evaluations" + (f", readout {history[-1]['readout_time'] * 1000:.2f} ms" if len(theta) > 7 else ""))
+                f"cost {history[-1]['cost']:.4f}, {evaluations} evaluations, {pairs.shared:.0%} with a reference partner at once" + (f", readout {history[-1]['readout_time'] * 1000:.2f} ms" if len(theta) > 7 else ""))
             if _pixel_motion(problem, theta, (theta - previous)[active], active, pairs, factor) < (config.fine_stop_px if finest else config.stop_px):
                 break
         level_end[factor] = theta.copy()

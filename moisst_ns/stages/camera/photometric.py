@@ -177,6 +177,9 @@ class PairSet:
     """The partner frame (the camera's own frame index, or the reference camera's frame index)."""
     value_b: Float[np.ndarray, "rows"]
     """Grey level of reference partners (fixed; 0 for own partners)."""
+    shared: float = 0.0
+    """Share of the sampled points whose reference partner is the reference frame nearest in time
+    (``CameraRegistrationConfig.shared_view_share``)."""
 
 
 class Registration:
@@ -219,6 +222,7 @@ class Registration:
         stack = cam.levels[factor]
         baseline = c.fine_baseline if c.fine_baseline > 0 and factor == min(cam.levels) else c.own_baseline
         rows = {"points": [], "frame_a": [], "own": [], "frame_b": [], "value_b": []}
+        drawn = []  # per frame: its sampled points and which of them found a reference partner
         for k in range(len(cam.stamps)):
             candidates = np.flatnonzero(seen_by[k])
             if len(candidates) == 0:
@@ -231,8 +235,8 @@ class Registration:
             take = self.rng.choice(len(candidates), size=min(per_frame, int((weight > 0).sum())), replace=False, p=weight / weight.sum())
             chosen = candidates[take]
             # reference partner: the reference frame nearest in time that sees the point
-            pending = np.full(len(chosen), ref is not None)
-            for j in (np.argsort(np.abs(ref.stamps - cam.stamps[k])) if ref is not None else []):
+            pending, at_once = np.full(len(chosen), ref is not None), 0
+            for rank, j in enumerate(np.argsort(np.abs(ref.stamps - cam.stamps[k])) if ref is not None else []):
                 if not pending.any():
                     break
                 seen = self.ref_visible[j, chosen] & pending
@@ -246,18 +250,24 @@ class Registration:
                                  ("frame_b", np.full(len(hit), j)), ("value_b", value[okb])):
                     rows[key].append(val)
                 pending[hit] = False
-            # own partner: the nearest frame at least ``baseline`` of driving away (both sides when possible)
+                at_once += len(hit) if rank == 0 else 0
+            drawn.append((k, chosen, (ref is not None) & ~pending, at_once))
+        # own partner: the nearest frame at least ``baseline`` of driving away (both sides when possible); none for a
+        # point with a reference partner when most points have one at the same instant (``shared_view_share``)
+        share = sum(d[3] for d in drawn) / max(1, sum(len(d[1]) for d in drawn))
+        for k, chosen, paired, _ in drawn:
+            unpaired = ~paired if share >= c.shared_view_share else np.ones(len(chosen), dtype=bool)
             for partner in (self._partner(travelled, k, +1, baseline), self._partner(travelled, k, -1, baseline)):
                 if partner is None:
                     continue
-                seen = seen_by[partner, chosen]
+                seen = seen_by[partner, chosen] & unpaired
                 for key, val in (("points", chosen[seen]), ("frame_a", np.full(int(seen.sum()), k)), ("own", np.ones(int(seen.sum()), bool)),
                                  ("frame_b", np.full(int(seen.sum()), partner)), ("value_b", np.zeros(int(seen.sum())))):
                     rows[key].append(val)
         if not rows["points"]:
             return PairSet(np.zeros((0, 3)), *(np.zeros(0, dtype=t) for t in (np.int64, bool, np.int64, np.float64)))
         cat = {k: np.concatenate(v) for k, v in rows.items()}
-        return PairSet(self.world[cat["points"]], cat["frame_a"], cat["own"], cat["frame_b"], cat["value_b"])
+        return PairSet(self.world[cat["points"]], cat["frame_a"], cat["own"], cat["frame_b"], cat["value_b"], share)
 
     def _partner(self, travelled: np.ndarray, k: int, direction: int, baseline: float) -> Optional[int]:
         far = np.flatnonzero(np.abs(travelled - travelled[k]) >= baseline)
