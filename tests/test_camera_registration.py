@@ -137,9 +137,11 @@ def test_keeps_the_prior_when_the_images_do_not_match(rig_folder, tmp_path):
 
 
 def test_a_fit_at_its_bound_is_a_runaway_and_keeps_the_prior(rig_folder):
-    """With the translation bounded to 1 cm the 50 cm lever-arm error drives the fit into the bound: prior kept, said why."""
+    """With the translation bounded to 1 cm the 50 cm lever-arm error drives the fit into the bound: prior kept, said why.
+    (The stage's own iterations: since a point paired with the reference takes no own partner, one outer iteration
+    of 5 evaluations no longer reaches the bound on this rig.)"""
     rig, _, start = lidar_at_truth(rig_folder)
-    config = CameraRegistrationConfig(max_translation=0.01, outer_iterations=1, max_evaluations=5, split_half=False)
+    config = CameraRegistrationConfig(max_translation=0.01, split_half=False)
     r = register_cameras(rig, start, config, sensors=["cam_front_right"], log=lambda s: None).cameras["cam_front_right"]
     assert r.kept_prior and r.note.startswith("ran into its bound on ") and "(a runaway)" in r.note
     np.testing.assert_array_equal(r.estimate, start.T_ref_sensor["cam_front_right"])
@@ -158,7 +160,9 @@ def test_a_lidar_the_first_stage_left_undetermined_does_not_make_the_cameras_map
     """``map_source``: the LiDAR map unless the LiDAR-first stage left a LiDAR parameter undetermined (then the reference
     camera's triangulated features, the reason naming the LiDAR and its parameters); without a LiDAR, the features.
     Registered with the LiDAR undetermined, a camera's result does not depend on the LiDAR's calibration at all: the
-    same, to the bit, with the LiDAR at its true calibration and at its prior 86.6 cm / 8.8 deg off."""
+    same, to the bit, with the LiDAR at its true calibration and at its prior 86.6 cm / 8.8 deg off. (With own partners
+    for every point: on this 96x72 rig the default ``shared_view_share`` leaves the camera's features-map fit too
+    loosely determined and it keeps its prior, which would make the comparison trivial.)"""
     rig, truth, at_truth = lidar_at_truth(rig_folder)
     assert map_source(rig) == ("lidar", "") and map_source(rig, {"lidar": []}) == ("lidar", "")
     source, why = map_source(rig, {"lidar": ["x", "z"]})
@@ -166,7 +170,7 @@ def test_a_lidar_the_first_stage_left_undetermined_does_not_make_the_cameras_map
     lidarless = load_rig(make_rig(SynthConfig(out=tmp_path / "nolidar", seed=1, width=32, height=24, frames=2, lidar=False)))
     assert map_source(lidarless, {"lidar": ["x"]}) == ("features", "")
     at_prior = Calibration.from_rig(rig)
-    results = [register_cameras(rig, start, CameraRegistrationConfig(), sensors=["cam_front_right"], log=lambda s: None,
+    results = [register_cameras(rig, start, CameraRegistrationConfig(shared_view_share=2.0), sensors=["cam_front_right"], log=lambda s: None,
                                 lidar_undetermined={"lidar": ["z"]}) for start in (at_truth, at_prior)]
     assert [r.map_source for r in results] == ["features", "features"] and results[0].map_points == results[1].map_points > 100
     np.testing.assert_array_equal(results[0].calibration.T_ref_sensor["cam_front_right"], results[1].calibration.T_ref_sensor["cam_front_right"])
