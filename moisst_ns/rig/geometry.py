@@ -128,23 +128,34 @@ class ReferenceTrajectory:
         seg = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
         return seg, (t - times[seg]) / (times[seg + 1] - times[seg])
 
-    def place(self, t: Float[np.ndarray, "num"], points: Float[np.ndarray, "num 3"]) -> Float[np.ndarray, "num 3"]:
-        """Eq. 1 applied to reference-frame points (metres) seen at times ``t`` (seconds since ``t0``): ``R(t) q +
-        p(t)``, as ``pose_and_rates`` but with ``Exp(a w_k)`` applied to each point by Rodrigues' formula and ``R_k``
-        per segment (no matrix per point: on KITTI 0048's 1.3 M points the LiDAR stage peaks at 1.07 GB, 1.50 GB with
-        a matrix per point, 1.40 GB with ``roma.quat_action``'s intermediates)."""
+    def placer(self, t: Float[np.ndarray, "num"]) -> Callable[[Float[np.ndarray, "num 3"]], Float[np.ndarray, "num 3"]]:
+        """Eq. 1 at times ``t`` (seconds since ``t0``) as a function of reference-frame points (metres): ``q -> R(t) q +
+        p(t)``, with ``Exp(a w_k)`` applied to each point by Rodrigues' formula and ``R_k`` per segment (no matrix per
+        point: on KITTI 0048's 1.3 M points the LiDAR stage peaks at 1.07 GB, 1.50 GB with a matrix per point, 1.40 GB
+        with ``roma.quat_action``'s intermediates). A caller that places many point sets seen at the same times (the
+        LiDAR stage's grid search) keeps the function."""
         seg, alpha = self._segments(t)
         rotvec = alpha[:, None] * self.steps().numpy()[seg]
         angle = np.linalg.norm(rotvec, axis=1, keepdims=True)
         axis = rotvec / np.where(angle > 0, angle, 1.0)
         cos, sin = np.cos(angle), np.sin(angle)
-        turned = points * cos + np.cross(axis, points) * sin + axis * (np.sum(axis * points, axis=1, keepdims=True) * (1 - cos))
         rotations, translations = self.rotations.numpy(), self.translations.numpy()
-        out = np.empty_like(turned)
-        for k in np.unique(seg):
-            rows = seg == k
-            out[rows] = turned[rows] @ rotations[k].T + translations[k] + alpha[rows, None] * (translations[k + 1] - translations[k])
-        return out
+        groups = [(rows, rotations[k].T, translations[k] + alpha[rows, None] * (translations[k + 1] - translations[k]))
+                  for k in np.unique(seg) for rows in [np.flatnonzero(seg == k)]]
+
+        def place(points: Float[np.ndarray, "num 3"]) -> Float[np.ndarray, "num 3"]:
+            turned = points * cos + np.cross(axis, points) * sin + axis * (np.sum(axis * points, axis=1, keepdims=True) * (1 - cos))
+            out = np.empty_like(turned)
+            for rows, rotation_t, position in groups:
+                out[rows] = turned[rows] @ rotation_t + position
+            return out
+
+        return place
+
+    def place(self, t: Float[np.ndarray, "num"], points: Float[np.ndarray, "num 3"]) -> Float[np.ndarray, "num 3"]:
+        """Eq. 1 applied to reference-frame points (metres) seen at times ``t`` (seconds since ``t0``): ``R(t) q + p(t)``
+        (``placer``)."""
+        return self.placer(t)(points)
 
 
 def interpolate_trajectory(

@@ -1,13 +1,14 @@
 """Paper eq. 1-2 per LiDAR point, vectorised in numpy, and its analytic Jacobian (for the LiDAR-first stage).
 
 ``place_points`` is ``x = T_r(t + delta) @ ref_T_L @ p`` for every point at its own firing time, eq. 1 being
-``ReferenceTrajectory.pose_and_rates`` evaluated once per distinct time. No nerfstudio import.
+``ReferenceTrajectory.placer``; the Jacobian evaluates ``ReferenceTrajectory.pose_and_rates`` once per distinct time.
+No nerfstudio import.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Tuple, Union
+from typing import Callable, Optional, Tuple, Union
 
 import numpy as np
 import roma
@@ -98,7 +99,14 @@ def prior_residuals(ext: Extrinsic, prior: Extrinsic, increment: Float[np.ndarra
     return diff / sigma, jac / sigma[:, None]
 
 
-def place_points(traj: ReferenceTrajectory, ext: Extrinsic, points: Float[np.ndarray, "num 3"], times: Union[Float[np.ndarray, "num"], PointTimes]) -> Float[np.ndarray, "num 3"]:
+def placer_at(traj: ReferenceTrajectory, times: Union[Float[np.ndarray, "num"], PointTimes], offset: float) -> Callable:
+    """``traj.placer`` (eq. 1 as a function of reference-frame points) at each point's own time plus ``offset``."""
+    at = times.unique[times.index] if isinstance(times, PointTimes) else np.asarray(times)
+    return traj.placer(at + offset)
+
+
+def place_points(traj: ReferenceTrajectory, ext: Extrinsic, points: Float[np.ndarray, "num 3"], times: Union[Float[np.ndarray, "num"], PointTimes],
+                 placer: Optional[Callable] = None) -> Float[np.ndarray, "num 3"]:
     """Paper eq. 1-2 per point: ``x = T_r(t + delta) @ ref_T_L @ p``.
 
     Args:
@@ -106,12 +114,12 @@ def place_points(traj: ReferenceTrajectory, ext: Extrinsic, points: Float[np.nda
         ext: the LiDAR's calibration.
         points: points in the LiDAR frame, metres.
         times: each point's own-clock firing time, seconds since the trajectory's ``t0``.
+        placer: ``placer_at(traj, times, ext.time_offset)`` when the caller keeps it (many extrinsics, one time offset).
 
     Returns:
         World points, metres.
     """
-    at = times.unique[times.index] if isinstance(times, PointTimes) else np.asarray(times)
-    return traj.place(at + ext.time_offset, points @ ext.rotation.T + ext.translation)
+    return (placer or placer_at(traj, times, ext.time_offset))(points @ ext.rotation.T + ext.translation)
 
 
 def placement_jacobian(

@@ -10,7 +10,7 @@ docs/lidar-first.md, "The shared view", has the rules, what was tried and droppe
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import List, Optional
+from typing import Callable, List, Optional
 
 import numpy as np
 import torch
@@ -20,7 +20,7 @@ from moisst_ns.rig.format import Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_times
 from moisst_ns.rig.trust import finite_or_none
 from moisst_ns.stages.lidar.lidar_edges import scan_edges
-from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, place_points, trajectory_at
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, place_points, placer_at
 from moisst_ns.stages.camera.lidar_map import ImageStack, PinholeModel, bilinear, project, read_grey, visible
 from moisst_ns.stages.camera.photometric import huber_costs
 
@@ -137,17 +137,14 @@ def view_rows(traj: ReferenceTrajectory, ext: Extrinsic, scans, view: ReferenceV
 
 
 def view_residuals(traj: ReferenceTrajectory, ext: Extrinsic, scans, view: ReferenceView, rows: ViewRows,
-                   increment: Float[np.ndarray, "7"], at: Optional[tuple] = None) -> Float[np.ndarray, "rows"]:
+                   increment: Float[np.ndarray, "7"], placer: Optional[Callable] = None) -> Float[np.ndarray, "rows"]:
     """Distance (pixels) from each row's projection at ``ext.updated(increment)`` to the nearest image edge. A
     projection that leaves the image reads the border: scoring it otherwise made fits gain by pushing points out of the
-    image. With a rolling shutter each point is seen from its row's pose (``reference_camera``). ``at``: the
-    trajectory's ``(world_R_ref, world_t_ref)`` at the rows' times and ``ext``'s time offset (``trajectory_at``),
-    when the caller keeps it for increments that leave the time offset alone (``search_held``); else evaluated here."""
+    image. With a rolling shutter each point is seen from its row's pose (``reference_camera``). ``placer``: eq. 1 at
+    the rows' times and ``ext``'s time offset (``placer_at``), when the caller keeps it for increments that leave the
+    time offset alone (``search_held``)."""
     moved = ext.updated(increment)
-    if at is None or increment[6] != 0:
-        at = trajectory_at(traj, scans.times[rows.point], moved.time_offset)[:2]
-    rotation, position = at
-    world = np.einsum("nij,nj->ni", rotation, scans.points[rows.point] @ moved.rotation.T + moved.translation) + position
+    world = place_points(traj, moved, scans.points[rows.point], scans.times[rows.point], None if increment[6] != 0 else placer)
     uv = project(view.distance.model, torch.from_numpy(reference_camera(traj, view, rows.frame, world)))[0].numpy()
     limit = np.array([view.distance.model.width, view.distance.model.height], dtype=np.float64) - 0.5 - 1e-6
     return bilinear(view.distance, rows.frame, np.clip(np.nan_to_num(uv, nan=0.5), 0.5, limit))[0]
@@ -260,12 +257,12 @@ def search_held(traj: ReferenceTrajectory, ext: Extrinsic, scans, shared: Shared
     evaluations, at_times = 0, {}
 
     def distances(rows: ViewRows, increment: np.ndarray) -> np.ndarray:
-        """``view_residuals`` with the trajectory evaluated once per row set (the search never moves the time offset;
+        """``view_residuals`` with eq. 1 prepared once per row set (the search never moves the time offset;
         the rows are kept with it so that their ``id`` is not reused)."""
         nonlocal evaluations
         evaluations += 1
         if id(rows) not in at_times:
-            at_times[id(rows)] = (rows, trajectory_at(traj, scans.times[rows.point], ext.time_offset)[:2])
+            at_times[id(rows)] = (rows, placer_at(traj, scans.times[rows.point], ext.time_offset))
         return view_residuals(traj, ext, scans, shared.view, rows, increment, at_times[id(rows)][1])
 
     def increment_of(cols: List[int], values: np.ndarray) -> np.ndarray:
