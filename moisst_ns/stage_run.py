@@ -179,6 +179,8 @@ def apply_stage_results(pipeline, run: StageRun) -> None:
     # plaza rig of seed 1 an unregistered side camera to 13.5 deg from a prior 8.8 deg off)
     cameras = {n: e for n, e in (run.cameras or {}).get("sensors", {}).items() if not e["kept_prior"] or e.get("held_there")}
     run.held = {**(run.lidar or {}).get("sensors", {}), **cameras}
+    for name, placed in (run.cameras or {}).get("lidars", {}).items():  # placed against the cameras at the same instants
+        run.held[name] = dict(run.held[name], shared_instant=placed)
     run.frozen = tuple(n for n in run.held if not pipeline.camera_refinement or rig.sensors[n].type == "lidar" or run.held[n].get("held_there"))
     run.refined = tuple(n for n in run.held if n not in run.frozen)
     pipeline.datamanager.held_back_sensors = run.refined
@@ -231,6 +233,7 @@ def run_camera_registration(rig, lidar_stage: Optional[dict], truth, out: Path, 
     from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, camera_sensors, register_cameras
     from moisst_ns.stages.camera.camera_report import write_stage_outputs
     from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError
+    from moisst_ns.stages.lidar.lidar_report import stage_sigma
 
     has_lidar = any(s.type == "lidar" for s in rig.sensors.values())
     if not camera_sensors(rig) or not (has_lidar or rig.sensors[rig.reference_sensor].type == "camera"):
@@ -238,7 +241,9 @@ def run_camera_registration(rig, lidar_stage: Optional[dict], truth, out: Path, 
     start = load_calibration(lidar_stage.get("file", out / "lidar_first" / "calibration.json")) if lidar_stage is not None else Calibration.from_rig(rig)
     config = CameraRegistrationConfig(**options)
     try:
-        result = register_cameras(rig, start, config, lidar_undetermined={n: e.get("undetermined", []) for n, e in (lidar_stage or {}).get("sensors", {}).items()})
+        lidars = (lidar_stage or {}).get("sensors", {})
+        result = register_cameras(rig, start, config, lidar_undetermined={n: e.get("undetermined", []) for n, e in lidars.items()},
+                                  lidar_sigma={n: stage_sigma(e)[0] for n, e in lidars.items()})
     except NoMapError as err:
         print(f"camera registration skipped: {err}; the NeRF calibrates the cameras")
         return None

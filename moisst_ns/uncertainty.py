@@ -19,6 +19,7 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
+from moisst_ns.stages.lidar.lidar_report import stage_sigma
 from moisst_ns.stages.trust.uncertainty_math import inherited_sigma, least_squares_sigma
 
 FD_STEPS = (0.002, 0.002, 0.002, np.deg2rad(0.02), np.deg2rad(0.02), np.deg2rad(0.02), 0.0005)
@@ -222,19 +223,6 @@ def trust_entry(sigma: Optional[List[float]], verdict: str, weak: List[str], rea
     return SensorTrust([float(s) for s in sigma[:3]], [float(np.rad2deg(s)) for s in sigma[3:6]], float(sigma[6]), verdict, weak, reason)
 
 
-def _lidar_stage_sigma(entry: dict):
-    """A LiDAR's sigma from its LiDAR-first record (trust order; m, rad, s) and where it comes from: the formal one,
-    at least half the split-half difference and the release check's spread where those ran, and the prior's sigma for
-    a parameter held at the prior (``lidar_first.held_sigma``)."""
-    sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
-    if entry.get("sigma_split_half"):  # the two halves of the drive fitted apart
-        sigma, source = list(np.fmax(sigma, [np.nan if v is None else v for v in entry["sigma_split_half"]])), "LiDAR-first formal and split-half"
-    if entry.get("held_check"):  # the free parameters' spread when the held ones are released; the held ones' prior sigma
-        check = entry["held_check"]
-        sigma, source = list(np.fmax(np.fmax(sigma, check["sigma_release"]), check.get("sigma_held", np.zeros(7)))), source + " and release"
-    return sigma, source
-
-
 def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: Dict[str, str], hit: Dict[str, list],
                seed: Optional[int]):
     """Sigma, weak parameters and verdict of every non-reference sensor; the prior replaces any estimate that the
@@ -268,7 +256,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
     final = Calibration(estimate.reference_sensor, dict(estimate.T_ref_sensor), dict(estimate.time_offset), {})
     drive_weak = {r.sensor: r.weak for r in drive}
     record, lines = {}, []
-    lidars = {n: _lidar_stage_sigma(e) for n, e in (stage or {"sensors": {}})["sensors"].items() if "observability" in e}
+    lidars = {n: stage_sigma(e) for n, e in (stage or {"sensors": {}})["sensors"].items() if "observability" in e}
     for i, name in enumerate(rig.data.sensor_names):
         if i == rig.data.reference_index:
             continue
@@ -282,13 +270,14 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         elif entry is not None:  # a camera held at its camera-registration estimate
             sigma = [np.inf if v is None else float(v) for v in entry["sigma"]]
             loss_est, loss_prior, source = entry["loss_estimate"], entry["loss_prior"], "camera-registration pairs"
-        if sigma is not None and name not in lidars and lidars:  # a camera placed against the LiDARs' map (and scene)
+        if sigma is not None and name not in lidars and lidars and (entry or {}).get("map_source", "lidar") == "lidar":  # placed against the LiDARs' map
             inherited = [inherited_sigma(estimate.T_ref_sensor[n], estimate.T_ref_sensor[name], s) ** 2 for n, (s, _) in lidars.items()]
             sigma, source = list(np.sqrt(np.asarray(sigma, dtype=np.float64) ** 2 + np.sum(inherited, axis=0))), source + " and the LiDAR map's"
         blind = entry.get("blind") if entry is not None else None
         weak = list(drive_weak.get(name, []))
         if entry is not None:
             weak += entry["weak"] + (blind or [])
+            weak = [p for p in weak if p not in (entry.get("shared_instant") or {}).get("taken", [])]  # placed by the shared view
         if sigma is not None:
             weak += [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step]
         weak = [p for p in PARAMETERS if p in weak]

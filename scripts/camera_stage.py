@@ -22,6 +22,9 @@ from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, register_cameras
 from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, calibrate_lidars, lidar_sensors
+from moisst_ns.stages.lidar.lidar_report import stage_sigma, stage_summary
+from moisst_ns.rig.trust import PARAMETERS, parameter_difference
+from moisst_ns.stages.trust.observability import UNITS
 
 TRUST_ORDER = [3, 4, 5, 0, 1, 2, 6]
 """Solver order (rotation, lever arm, delta) to the trust order (lever arm, rotation, delta)."""
@@ -48,7 +51,9 @@ def run(folder: Path, config: CameraRegistrationConfig, lidar_map: bool = False)
     lidar = calibrate_lidars(rig, LidarFirstConfig(), log=lambda s: None) if lidar_sensors(rig) else None
     calibration = lidar.calibration if lidar else Calibration.from_rig(rig)
     lidar_s = time.perf_counter() - start
-    result = register_cameras(rig, calibration, config, lidar_undetermined=None if lidar is None or lidar_map else {n: r.undetermined() for n, r in lidar.lidars.items()})
+    entries = stage_summary(lidar, LidarFirstConfig(), calibration, None)["sensors"] if lidar else {}
+    result = register_cameras(rig, calibration, config, lidar_undetermined=None if lidar is None or lidar_map else {n: r.undetermined() for n, r in lidar.lidars.items()},
+                              lidar_sigma={n: stage_sigma(e)[0] for n, e in entries.items()})
     print(f"{folder}: map from the {result.map_source}{': ' + result.map_note if result.map_note else ''}")
     print(f"{folder}: LiDAR first {lidar_s:.1f} s, cameras {time.perf_counter() - start - lidar_s:.1f} s")
     errors = calibration_report_errors(result.calibration, truth)
@@ -70,6 +75,11 @@ def run(folder: Path, config: CameraRegistrationConfig, lidar_map: bool = False)
                          + (f": {r.readout_note}" if r.readout_note else "") + ")")
                 record[name].update(readout_time=r.readout_time, readout_estimate=r.readout_estimate, readout_sigma=r.readout_sigma)
         print(line)
+    for name, placed in result.lidars.items():  # placed against the cameras at the same instants
+        sigma = stage_sigma(dict(entries[name], shared_instant=placed.to_json()))[0]
+        apart = parameter_difference(truth.T_ref_sensor[name], truth.time_offset[name], result.calibration.T_ref_sensor[name], result.calibration.time_offset[name])
+        print(f"  {name}: took {placed.taken} from the shared instants; error per axis "
+              + ", ".join(f"{p} {v * u[0]:.3g} (sigma {s * u[0]:.3g})" for p, v, s, u in zip(PARAMETERS, apart, sigma, UNITS)))
     return record
 
 

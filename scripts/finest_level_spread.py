@@ -20,7 +20,8 @@ import torch
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.stages.camera.camera_guards import solve, subset
-from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, load_camera
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig
+from moisst_ns.stages.camera.photometric import CameraFrames
 from moisst_ns.stages.camera.lidar_map import lidar_map
 from moisst_ns.stages.camera.photometric import Registration
 from moisst_ns.stages.stage_floor import rig_at
@@ -45,7 +46,7 @@ def main() -> None:
     config = CameraRegistrationConfig(**changes)
     world = lidar_map(at_truth, truth, config.map_voxel, config.min_range, log=lambda s: None)
     traj = ReferenceTrajectory.of(rig)
-    camera, reference = load_camera(at_truth, name, [1]), load_camera(at_truth, rig.reference_sensor, [1])
+    camera, reference = CameraFrames.of(at_truth, name, [1]), CameraFrames.of(at_truth, rig.reference_sensor, [1])
     for count in counts:
         estimates = []
         for seed in range(draws):

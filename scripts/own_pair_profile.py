@@ -16,7 +16,8 @@ import torch
 
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, load_camera
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig
+from moisst_ns.stages.camera.photometric import CameraFrames
 from moisst_ns.stages.camera.lidar_map import lidar_map
 from moisst_ns.stages.camera.photometric import Registration, robust_cost
 
@@ -35,7 +36,7 @@ def main() -> None:
     base = CameraRegistrationConfig(fine_baseline=0.0)
     world = lidar_map(rig, truth, base.map_voxel, base.min_range, lambda s: None)
     traj = ReferenceTrajectory.of(rig)
-    reference, camera = load_camera(rig, rig.reference_sensor, [1]), load_camera(rig, args.camera, [1])
+    reference, camera = CameraFrames.of(rig, rig.reference_sensor, [1]), CameraFrames.of(rig, args.camera, [1])
     for baseline in (float(b) for b in args.baselines.split(",")):
         config = dataclasses.replace(base, own_baseline=baseline)
         problem = Registration(traj, world, camera, reference, truth, config)

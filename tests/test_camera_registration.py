@@ -208,7 +208,7 @@ def test_bad_input_one_line_errors(rig_folder, tmp_path):
 def _feature_start_of(folder, sensor="cam_front_right"):
     """The feature start of ``sensor`` on a rig whose LiDAR is at the truth, and the truth."""
     from moisst_ns.stages.camera.camera_guards import bounds
-    from moisst_ns.stages.camera.camera_registration import load_camera
+    from moisst_ns.stages.camera.photometric import CameraFrames
     from moisst_ns.stages.camera.feature_start import FeatureStartConfig, feature_start
     from moisst_ns.stages.camera.lidar_map import lidar_map
 
@@ -216,7 +216,7 @@ def _feature_start_of(folder, sensor="cam_front_right"):
     config = CameraRegistrationConfig()
     world = lidar_map(rig, start, config.map_voxel, config.min_range, log=lambda s: None)
     traj = ReferenceTrajectory.of(rig)
-    reference, camera = load_camera(rig, "cam_front", [1]), load_camera(rig, sensor, [1])
+    reference, camera = CameraFrames.of(rig, "cam_front", [1]), CameraFrames.of(rig, sensor, [1])
     prior = np.asarray(start.T_ref_sensor[sensor])
     found = feature_start(traj, world, camera, reference, np.eye(4), 0.0, prior, start.time_offset[sensor],
                           rig.sensors[sensor].intrinsics, bounds(config), FeatureStartConfig(), log=lambda s: None)
@@ -257,18 +257,17 @@ def test_typical_error_significance_tells_the_side_cameras_blind_directions(rig_
     the frames; the side camera, which pairs almost only with its own frames, does not tell a 10 cm lateral lever arm or
     a 1 deg roll apart (measured 0.4 and 0.4 with own partners 3 m apart, 0.1 and 0.5 at 1.5 m), and an inactive correction is reported as inf."""
     from moisst_ns.stages.camera.camera_guards import PARAMETERS, typical_error_significance
-    from moisst_ns.stages.camera.camera_registration import load_camera
     from moisst_ns.stages.camera.lidar_map import lidar_map
-    from moisst_ns.stages.camera.photometric import Registration
+    from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig()
     world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
     traj = ReferenceTrajectory.of(rig)
-    reference = load_camera(rig, rig.reference_sensor, [1])
+    reference = CameraFrames.of(rig, rig.reference_sensor, [1])
     significance = {}
     for name in ("cam_front_right", "cam_left"):
-        problem = Registration(traj, world, load_camera(rig, name, [1]), reference, truth, config)
+        problem = Registration(traj, world, CameraFrames.of(rig, name, [1]), reference, truth, config)
         active = np.ones(7, dtype=bool)
         active[6] = name == "cam_front_right"
         significance[name] = dict(zip(PARAMETERS, typical_error_significance(problem, np.zeros(7), active, 1, config)))
@@ -295,15 +294,14 @@ def test_own_partners_are_farther_apart_at_the_finest_level(rig_folder):
     """A camera's own partner is the nearest frame at least ``own_baseline`` of driving away at the coarse levels and
     at least ``fine_baseline`` at the finest one: every own pair is that far apart, and the nearest pair is less than
     one frame's travel farther (the partner is the first frame past the baseline, not any frame)."""
-    from moisst_ns.stages.camera.camera_registration import load_camera
     from moisst_ns.stages.camera.lidar_map import lidar_map
-    from moisst_ns.stages.camera.photometric import Registration
+    from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig(own_baseline=1.5, fine_baseline=3.0)
     world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
     traj = ReferenceTrajectory.of(rig)
-    problem = Registration(traj, world, load_camera(rig, "cam_left", [1, 2]), load_camera(rig, rig.reference_sensor, [1, 2]), truth, config)
+    problem = Registration(traj, world, CameraFrames.of(rig, "cam_left", [1, 2]), CameraFrames.of(rig, rig.reference_sensor, [1, 2]), truth, config)
     positions = problem.model.poses(torch.zeros(7, dtype=torch.float64)).numpy()[:, :3, 3]
     steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
     travelled = np.r_[0.0, np.cumsum(steps)]
@@ -319,17 +317,16 @@ def test_a_camera_sharing_the_reference_view_pairs_a_point_with_the_reference_or
     """``shared_view_share``: the forward-right camera, most of whose points find a reference partner, gives such a point
     no own partner (its pairs then do not pass through the trajectory); with the share set above its own it does; the side
     camera's points find no reference partner at the same instant here (it keeps its own partners)."""
-    from moisst_ns.stages.camera.camera_registration import load_camera
     from moisst_ns.stages.camera.lidar_map import lidar_map
-    from moisst_ns.stages.camera.photometric import Registration
+    from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     world = lidar_map(rig, truth, 0.05, 2.0, lambda s: None)
-    traj, reference = ReferenceTrajectory.of(rig), load_camera(rig, rig.reference_sensor, [1])
+    traj, reference = ReferenceTrajectory.of(rig), CameraFrames.of(rig, rig.reference_sensor, [1])
 
     def both(name, share):
         config = CameraRegistrationConfig(shared_view_share=share)
-        pairs = Registration(traj, world, load_camera(rig, name, [1]), reference, truth, config).pairs(np.zeros(7), 1, 200)
+        pairs = Registration(traj, world, CameraFrames.of(rig, name, [1]), reference, truth, config).pairs(np.zeros(7), 1, 200)
         key = lambda rows: set(zip(pairs.frame_a[rows].tolist(), map(tuple, pairs.points[rows].round(6).tolist())))
         return pairs.shared, len(key(pairs.own) & key(~pairs.own)), int(pairs.own.sum())
 
@@ -346,9 +343,8 @@ def test_the_finest_level_samples_enough_points_that_its_minimum_does_not_hang_o
     ``fine_points_per_frame`` points per frame than with ``points_per_frame``'s 600, in the time offset and the lever
     arm; and the coarse levels keep ``points_per_frame / factor``."""
     from moisst_ns.stages.camera.camera_guards import points_per_frame, solve
-    from moisst_ns.stages.camera.camera_registration import load_camera
     from moisst_ns.stages.camera.lidar_map import lidar_map
-    from moisst_ns.stages.camera.photometric import Registration
+    from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig()
@@ -356,7 +352,7 @@ def test_the_finest_level_samples_enough_points_that_its_minimum_does_not_hang_o
     assert points_per_frame(config, 4, False) == 200 and points_per_frame(config, 2, False) == 300
     world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
     traj = ReferenceTrajectory.of(rig)
-    camera, reference = load_camera(rig, "cam_left", [1]), load_camera(rig, rig.reference_sensor, [1])
+    camera, reference = CameraFrames.of(rig, "cam_left", [1]), CameraFrames.of(rig, rig.reference_sensor, [1])
     spread = {}
     for count in (config.points_per_frame, config.fine_points_per_frame):
         estimates = []
@@ -373,15 +369,14 @@ def test_points_are_drawn_in_proportion_to_the_gradient(rig_folder):
     """Map points are drawn with probability ``|grad I|``: the drawn points' mean squared gradient is within 30 % of
     its expectation under that law over the frame's visible points (``E|g|^3 / E|g|``; drawn without replacement, and
     only points the partner frame also sees pair up: measured within 23 %)."""
-    from moisst_ns.stages.camera.camera_registration import load_camera
     from moisst_ns.stages.camera.lidar_map import bilinear, lidar_map
-    from moisst_ns.stages.camera.photometric import Registration
+    from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     base = CameraRegistrationConfig()
     world = lidar_map(rig, truth, base.map_voxel, base.min_range, lambda s: None)
     traj = ReferenceTrajectory.of(rig)
-    camera = load_camera(rig, "cam_front_right", [1])
+    camera = CameraFrames.of(rig, "cam_front_right", [1])
     stack = camera.levels[1]
 
     def squared_gradient(problem, points, frame):
@@ -402,16 +397,16 @@ def test_the_finest_level_iterates_until_the_projections_stop_moving(rig_folder)
     """The finest level runs up to ``fine_iterations`` outer iterations and stops once one moves the projections by
     less than ``fine_stop_px``; the coarser levels keep ``outer_iterations`` and ``stop_px``: with the finest stop at
     infinity it ends after one iteration, with a stop of 0 it runs all ``fine_iterations``."""
-    from moisst_ns.stages.camera.camera_registration import _descend, load_camera
+    from moisst_ns.stages.camera.camera_registration import _descend
     from moisst_ns.stages.camera.lidar_map import lidar_map, pyramid_factors
-    from moisst_ns.stages.camera.photometric import Registration
+    from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     base = CameraRegistrationConfig(outer_iterations=2, fine_points_per_frame=600)
     world = lidar_map(rig, truth, base.map_voxel, base.min_range, lambda s: None)
     traj = ReferenceTrajectory.of(rig)
     factors = pyramid_factors(96, base.min_width)
-    camera, reference = load_camera(rig, "cam_front_right", factors), load_camera(rig, rig.reference_sensor, factors)
+    camera, reference = CameraFrames.of(rig, "cam_front_right", factors), CameraFrames.of(rig, rig.reference_sensor, factors)
     for stop, iterations, expected in ((np.inf, 4, 1), (0.0, 4, 4)):
         config = replace(base, fine_stop_px=stop, fine_iterations=iterations)
         history = _descend(Registration(traj, world, camera, reference, truth, config), config, lambda s: None, np.zeros(7))[1]
@@ -521,16 +516,16 @@ def test_the_finest_level_runs_once_when_both_starts_end_in_one_basin(rig_folder
     """With a feature start the coarse levels descend from it and from the prior; when they end within ``stop_px`` of
     each other the finest level (the stage's most costly) runs once, from the lower-cost one: its history then holds
     each coarse level once and the finest level after them. A start 0.2 rad away ends elsewhere: both are finished."""
-    from moisst_ns.stages.camera.camera_registration import load_camera, register_camera
+    from moisst_ns.stages.camera.camera_registration import register_camera
     from moisst_ns.stages.camera.feature_start import FeatureStart
     from moisst_ns.stages.camera.lidar_map import lidar_map, pyramid_factors
-    from moisst_ns.stages.camera.photometric import Registration
+    from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig(outer_iterations=2, fine_iterations=2, fine_points_per_frame=600, split_half=False)
     world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
     factors = pyramid_factors(96, config.min_width)
-    camera, reference = load_camera(rig, "cam_front_right", factors), load_camera(rig, rig.reference_sensor, factors)
+    camera, reference = CameraFrames.of(rig, "cam_front_right", factors), CameraFrames.of(rig, rig.reference_sensor, factors)
     for theta, merged in ((np.full(7, 1e-7), True), (np.r_[0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0], False)):
         lines = []
         problem = Registration(ReferenceTrajectory.of(rig), world, camera, reference, truth, config)

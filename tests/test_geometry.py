@@ -67,9 +67,9 @@ def test_placing_points_by_rodrigues_is_eq1_applied_to_them():
     points = np.random.default_rng(0).normal(size=(len(t), 3)) * 20
     rot_true, trans_true = closed_form(torch.from_numpy(t), omega, velocity)
     expected = torch.einsum("nij,nj->ni", rot_true, torch.from_numpy(points)) + trans_true
-    assert np.allclose(traj.place(t, points), expected.numpy(), atol=1e-10)
+    assert np.allclose(traj.placer(t)(points), expected.numpy(), atol=1e-10)
     rot_n, trans_n, _, _ = traj.pose_and_rates(t)
-    assert np.allclose(traj.place(t, points), np.einsum("nij,nj->ni", rot_n, points) + trans_n, atol=1e-10)
+    assert np.allclose(traj.placer(t)(points), np.einsum("nij,nj->ni", rot_n, points) + trans_n, atol=1e-10)
 
 
 def test_time_derivative_is_the_segment_velocity():

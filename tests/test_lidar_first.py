@@ -478,10 +478,10 @@ def test_prior_residuals_are_the_distance_to_the_prior_in_sigmas_with_an_exact_j
 
 def test_a_parameter_held_at_the_prior_carries_the_priors_sigma():
     """``held_sigma``: the prior's sigma (``prior_sigma``) for a parameter held because the halves disagree and not
-    placed by the shared view, 0 elsewhere (exact, ``PARAMETERS`` order); ``uncertainty._lidar_stage_sigma`` takes the
+    placed by the shared view, 0 elsewhere (exact, ``PARAMETERS`` order); ``lidar_report.stage_sigma`` takes the
     largest of it, the formal, split-half and release parts, and reads a record written before it existed."""
     from moisst_ns.stages.lidar.lidar_first import held_sigma
-    from moisst_ns.uncertainty import _lidar_stage_sigma
+    from moisst_ns.stages.lidar.lidar_report import stage_sigma
 
     assert held_sigma([4, 5, 0], [0], (1.0, 0.17, 0.1)) == [0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]  # y, z held; roll placed
     assert held_sigma([1, 6], [], (1.0, 0.17, 0.1)) == [0.0, 0.0, 0.0, 0.0, 0.17, 0.0, 0.1]  # pitch and delta
@@ -489,7 +489,7 @@ def test_a_parameter_held_at_the_prior_carries_the_priors_sigma():
     formal = [0.01, 0.02, 0.03, 0.001, 0.002, 0.003, 0.004]
     check = {"sigma_release": [0.0, 0.14, 0.0, 0.0, 0.0, 0.05, 0.0], "sigma_held": held_sigma([4], [], (1.0, 0.17, 0.1))}
     entry = {"observability": [{"sigma": s} for s in formal], "sigma_split_half": [0.05] + [None] * 6, "held_check": check}
-    sigma, source = _lidar_stage_sigma(entry)
+    sigma, source = stage_sigma(entry)
     assert np.allclose(sigma, [0.05, 1.0, 0.03, 0.001, 0.002, 0.05, 0.004]) and source.endswith("and release")
     del check["sigma_held"]  # a record of an older run
-    assert np.allclose(_lidar_stage_sigma(entry)[0], [0.05, 0.14, 0.03, 0.001, 0.002, 0.05, 0.004])
+    assert np.allclose(stage_sigma(entry)[0], [0.05, 0.14, 0.03, 0.001, 0.002, 0.05, 0.004])

@@ -25,7 +25,7 @@ from moisst_ns.stages.lidar.lidar_first import (
 )
 from moisst_ns.stages.lidar.lidar_geometry import Extrinsic
 from moisst_ns.stages.camera.lidar_map import CameraStageError
-from moisst_ns.stages.lidar.lidar_edges import JUMP, MAX_RING_GAP_DEG, NEIGHBOUR_DEG, depth_edges
+from moisst_ns.stages.lidar.lidar_edges import JUMP, MAX_RING_GAP_DEG, NEIGHBOUR_DEG, scan_edges
 from moisst_ns.stages.lidar.lidar_view import GRID, MAX_DISTANCE, REFINEMENTS, edge_distance, search_held, view_residuals
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, TEST_STEPS
 
@@ -40,7 +40,7 @@ def extrinsic_of(T, time_offset) -> Extrinsic:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# depth_edges on hand-built scans
+# scan_edges on hand-built scans
 
 
 def spherical_scan(elevations_deg, azimuths_deg, range_of):
@@ -57,7 +57,7 @@ RINGS = (-10.0, -5.0, 0.0)
 
 
 def shuffled(points, *columns, seed=0):
-    """The scan in a random order (``depth_edges`` must not rely on the input order), and its columns alike."""
+    """The scan in a random order (``scan_edges`` must not rely on the input order), and its columns alike."""
     perm = np.random.default_rng(seed).permutation(len(points))
     return (points[perm],) + tuple(c[perm] for c in columns)
 
@@ -67,7 +67,7 @@ def test_depth_edges_are_the_near_side_of_a_box_on_every_ring():
     near side), never the wall points beside them, nor any other point."""
     points, el, az = spherical_scan(RINGS, AZIMUTHS, lambda e, a: 8.0 if 10.0 - 1e-9 <= a <= 14.0 + 1e-9 else 20.0)
     points, el, az = shuffled(points, el, az)
-    edges = depth_edges(points)
+    edges = scan_edges(points)[0]
     expected = np.flatnonzero(np.isclose(az, 10.0) | np.isclose(az, 14.0))
     assert len(expected) == 2 * len(RINGS)
     np.testing.assert_array_equal(edges, expected)  # sorted indices into the input
@@ -84,13 +84,13 @@ def test_depth_edges_jump_threshold_and_neighbour_gap():
         for side in (1.0, -1.0):  # the near points after the jump in azimuth, or before it
             points, _, az = spherical_scan([-5.0], AZIMUTHS, lambda e, a: near if side * a >= -1e-9 else far)
             expected = np.flatnonzero(np.isclose(az, 0.0)) if found else np.zeros(0, dtype=np.int64)
-            np.testing.assert_array_equal(depth_edges(points), expected)
+            np.testing.assert_array_equal(scan_edges(points)[0], expected)
     # a box border with no firing for a little more than NEIGHBOUR_DEG between it and the wall: no edge; a little less: one
     left = -0.2 * np.arange(100, 0, -1)  # -20 .. -0.2 deg, the wall at 20 m
     for gap, found in ((NEIGHBOUR_DEG + 0.05, False), (NEIGHBOUR_DEG - 0.05, True)):
         azimuths = np.r_[left, left[-1] + gap + 0.2 * np.arange(100)]  # the box at 8 m from 0.45 / 0.35 deg on
         points, _, az = spherical_scan([-5.0], azimuths, lambda e, a: 8.0 if a > 0 else 20.0)
-        np.testing.assert_array_equal(depth_edges(points), [len(left)] if found else np.zeros(0, dtype=np.int64))
+        np.testing.assert_array_equal(scan_edges(points)[0], [len(left)] if found else np.zeros(0, dtype=np.int64))
 
 
 def test_depth_edges_ignore_smooth_range_changes():
@@ -98,9 +98,9 @@ def test_depth_edges_ignore_smooth_range_changes():
     neighbours) and a slope of range along azimuth have no depth edge."""
     points, _, _ = spherical_scan(RINGS, AZIMUTHS, lambda e, a: 10.0 / (np.cos(np.radians(a)) * np.cos(np.radians(e))))
     assert np.ptp(np.linalg.norm(points, axis=1)) > 9.0
-    assert len(depth_edges(shuffled(points)[0])) == 0
+    assert len(scan_edges(shuffled(points)[0])[0]) == 0
     ramp, _, _ = spherical_scan(RINGS, AZIMUTHS, lambda e, a: 15.0 + 0.05 * a)  # 12 m to 18 m, 1 cm per neighbour
-    assert len(depth_edges(ramp)) == 0
+    assert len(scan_edges(ramp)[0]) == 0
 
 
 def test_depth_edges_never_compare_points_of_different_rings_along_azimuth():
@@ -109,10 +109,10 @@ def test_depth_edges_never_compare_points_of_different_rings_along_azimuth():
     ring within ``MAX_RING_GAP_DEG`` to continue the surface by, and -5 deg is too far from either)."""
     ranges = {0.0: 5.0, 0.5: 30.0, -5.0: 12.0}
     points, _, _ = spherical_scan(sorted(ranges), AZIMUTHS, lambda e, a: ranges[e])
-    assert len(depth_edges(shuffled(points, seed=1)[0])) == 0
+    assert len(scan_edges(shuffled(points, seed=1)[0])[0]) == 0
     # the rings are far apart in elevation, yet each one alone still finds a box
     with_box, _, az = spherical_scan(sorted(ranges), AZIMUTHS, lambda e, a: ranges[e] * (0.5 if e == 0.5 and 0.0 <= a <= 5.0 + 1e-9 else 1.0))
-    np.testing.assert_array_equal(depth_edges(with_box), np.flatnonzero(np.isin(np.round(az, 6), [0.0, 5.0]) & (with_box[:, 2] > 0)))
+    np.testing.assert_array_equal(scan_edges(with_box)[0], np.flatnonzero(np.isin(np.round(az, 6), [0.0, 5.0]) & (with_box[:, 2] > 0)))
 
 
 def test_depth_edges_across_rings_are_the_top_of_a_box():
@@ -124,11 +124,11 @@ def test_depth_edges_across_rings_are_the_top_of_a_box():
     sides = (np.isclose(az, 10.0) | np.isclose(az, 14.0)) & (el <= 0)
     top = np.isclose(el, 0.0) & (az > 10 - 1e-9) & (az < 14 + 1e-9)
     assert sides.sum() == 10 and top.sum() == 21
-    np.testing.assert_array_equal(depth_edges(points), np.flatnonzero(sides | top))
+    np.testing.assert_array_equal(scan_edges(points)[0], np.flatnonzero(sides | top))
     # and upside down (an overhang: the box from 0 deg up): its lowest row
     points, el, az = spherical_scan(np.arange(-4.0, 4.5), AZIMUTHS, lambda e, a: 8.0 if 10 - 1e-9 <= a <= 14 + 1e-9 and e >= 0 else 20.0)
     bottom = np.isclose(el, 0.0) & (az > 10 - 1e-9) & (az < 14 + 1e-9)
-    np.testing.assert_array_equal(depth_edges(points), np.flatnonzero(((np.isclose(az, 10.0) | np.isclose(az, 14.0)) & (el >= 0)) | bottom))
+    np.testing.assert_array_equal(scan_edges(points)[0], np.flatnonzero(((np.isclose(az, 10.0) | np.isclose(az, 14.0)) & (el >= 0)) | bottom))
 
 
 def test_depth_edges_not_on_flat_ground_at_grazing_incidence():
@@ -142,11 +142,11 @@ def test_depth_edges_not_on_flat_ground_at_grazing_incidence():
     r = np.linalg.norm(flat, axis=1)
     by_ring = np.array([r[el == e][0] for e in rings])
     assert np.any(np.diff(by_ring) > JUMP[0] + JUMP[1] * by_ring[:-1])  # the plain jump rule alone would fire
-    assert len(depth_edges(shuffled(flat)[0])) == 0
+    assert len(scan_edges(shuffled(flat)[0])[0]) == 0
     ground = lambda e: 1.7 / np.sin(np.radians(-e))
     step, el, _ = spherical_scan(rings, AZIMUTHS, lambda e, a: ground(e) if ground(e) < 30.0 else 2.7 / np.sin(np.radians(-e)))
     last = max(e for e in rings if ground(e) < 30.0)
-    np.testing.assert_array_equal(depth_edges(step), np.flatnonzero(np.isclose(el, last)))
+    np.testing.assert_array_equal(scan_edges(step)[0], np.flatnonzero(np.isclose(el, last)))
 
 
 def test_depth_edges_across_rings_farther_apart_than_the_gap():
@@ -156,7 +156,7 @@ def test_depth_edges_across_rings_farther_apart_than_the_gap():
         rings = gap * np.arange(-3.0, 3.5) + 0.07  # off the ring bins' borders
         points, el, az = spherical_scan(rings, AZIMUTHS, lambda e, a: 8.0 if 10 - 1e-9 <= a <= 14 + 1e-9 and e <= 0.1 else 20.0)
         expected = ((np.isclose(az, 10.0) | np.isclose(az, 14.0)) & (el <= 0.1)) | (with_top & np.isclose(el, 0.07) & (az > 10 - 1e-9) & (az < 14 + 1e-9))
-        np.testing.assert_array_equal(depth_edges(points), np.flatnonzero(expected))
+        np.testing.assert_array_equal(scan_edges(points)[0], np.flatnonzero(expected))
 
 
 def test_depth_edges_across_rings_only_where_the_beams_are_apart():
@@ -173,7 +173,7 @@ def test_depth_edges_across_rings_only_where_the_beams_are_apart():
         top = np.isclose(ring, 0.07) & (az > 10.1) & (az < 13.9)  # the top row, its corners (also sides) left out
         sides = np.isin(np.round(az, 6), [10.0, 14.0]) & (ring <= 0.5)
         found = np.zeros(len(points), bool)
-        found[depth_edges(points)] = True
+        found[scan_edges(points)[0]] = True
         assert top.sum() == 19 and sides.sum() == 10
         assert found[top].sum() == (19 if with_top else 0), (spread, found[top].sum())
         assert found[sides].all() or not with_top  # (spread over 0.3 deg, a ring's points fall in several ring bins)

@@ -228,15 +228,15 @@ def test_an_estimated_readout_is_an_8th_correction_within_its_bounds(rig_folder)
     """The joint fit itself (one descent, no guards): 8 corrections in the history, the readout's within
     ``[0, 0.999 frame period)`` at every iteration, held where it started at the coarser levels."""
     from moisst_ns.rig.geometry import ReferenceTrajectory as Traj
-    from moisst_ns.stages.camera.camera_registration import _descend, load_camera
+    from moisst_ns.stages.camera.camera_registration import _descend
     from moisst_ns.stages.camera.lidar_map import lidar_map
-    from moisst_ns.stages.camera.photometric import Registration
+    from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
     config = CameraRegistrationConfig(estimate_readout=True, fine_iterations=1, outer_iterations=1, max_evaluations=8)
     world = lidar_map(rig, truth, config.map_voxel, config.min_range, log=lambda s: None)
     traj = Traj.of(rig)
-    problem = Registration(traj, world, load_camera(rig, "cam_front_right", [4, 2, 1]), load_camera(rig, "cam_front", [4, 2, 1]), truth, config)
+    problem = Registration(traj, world, CameraFrames.of(rig, "cam_front_right", [4, 2, 1]), CameraFrames.of(rig, "cam_front", [4, 2, 1]), truth, config)
     theta, history, _, _ = _descend(problem, config, lambda s: None, np.r_[np.zeros(7), -READOUT])  # from a readout of 0
     assert [h["level"] for h in history] == [4, 2, 1] and all(len(h["correction"]) == 8 for h in history)
     assert history[0]["readout_time"] == 0.0 and all(0.0 <= h["readout_time"] < 0.0999 for h in history)

@@ -152,11 +152,6 @@ class ReferenceTrajectory:
 
         return place
 
-    def place(self, t: Float[np.ndarray, "num"], points: Float[np.ndarray, "num 3"]) -> Float[np.ndarray, "num 3"]:
-        """Eq. 1 applied to reference-frame points (metres) seen at times ``t`` (seconds since ``t0``): ``R(t) q + p(t)``
-        (``placer``)."""
-        return self.placer(t)(points)
-
 
 def interpolate_trajectory(
     times: Float[Tensor, "num_poses"],

@@ -25,7 +25,8 @@ from jaxtyping import Float
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, camera_sensors, load_camera, register_cameras
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, camera_sensors, register_cameras
+from moisst_ns.stages.camera.photometric import CameraFrames
 from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, calibrate_lidars, lidar_sensors
 from moisst_ns.stages.camera.lidar_map import lidar_map
 from moisst_ns.stages.camera.photometric import Registration
@@ -106,7 +107,7 @@ def map_depth_errors(rig: Rig, truth: Calibration, cast: RayCaster, frame_step: 
     for name, spec in rig.sensors.items():
         if spec.type != "camera":
             continue
-        camera = load_camera(at_truth, name, [1])
+        camera = CameraFrames.of(at_truth, name, [1])
         problem = Registration(traj, world, camera, None, truth, config)
         pairs = problem.pairs(np.zeros(7), 1, config.points_per_frame)
         keep = pairs.frame_a % frame_step == 0

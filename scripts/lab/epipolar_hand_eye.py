@@ -22,7 +22,8 @@ from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.rig.trust import parameter_difference
 from moisst_ns.stages.camera.camera_map import _camera_matrix, _distortion
-from moisst_ns.stages.camera.camera_registration import camera_sensors, load_camera
+from moisst_ns.stages.camera.camera_registration import camera_sensors
+from moisst_ns.stages.camera.photometric import CameraFrames
 from moisst_ns.stages.camera.feature_start import _sift
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS
 
@@ -100,7 +101,7 @@ def main():
     for name in args.cameras or camera_sensors(rig):
         begun = time.time()
         spec = rig.sensors[name]
-        frames = load_camera(rig, name, [1])
+        frames = CameraFrames.of(rig, name, [1])
         pairs, a, b, focal = own_matches(frames.levels[1].intensity, spec.intrinsics, args.lag)
         prior, off = np.asarray(spec.T_ref_sensor, dtype=np.float64), float(spec.time_offset)
         fun = lambda t, keep=slice(None): sampson(t, traj, frames.stamps, prior, off, pairs[keep], a[keep], b[keep], focal)

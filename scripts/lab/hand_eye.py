@@ -30,7 +30,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
-from moisst_ns.stages.camera.camera_map import _camera_matrix, _distortion
+from moisst_ns.stages.camera.camera_map import camera_matrix, distortion
 from moisst_ns.stages.trust.drive_observability import analyse_drive
 from moisst_ns.stages.camera.feature_start import _sift
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS
@@ -105,7 +105,7 @@ def camera_motion(images: List[np.ndarray], intrinsics: dict, config: HandEyeCon
     """
     import cv2
 
-    K, dist = _camera_matrix(intrinsics), _distortion(intrinsics)
+    K, dist = camera_matrix(intrinsics), distortion(intrinsics)
     keys = [_sift(image, config.features) for image in images]
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     out = {"pairs": [], "rotations": [], "directions": [], "inliers": []}

@@ -14,7 +14,8 @@ import torch
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.camera.camera_registration import camera_sensors, load_camera
+from moisst_ns.stages.camera.camera_registration import camera_sensors
+from moisst_ns.stages.camera.photometric import CameraFrames
 from hand_eye import HandEyeConfig, camera_motion, hand_eye  # scripts/lab/hand_eye.py
 from moisst_ns.stages.trust.observability import PARAMETERS
 
@@ -28,7 +29,7 @@ def main() -> None:
     for name in sys.argv[2:] or camera_sensors(rig):
         begun = time.time()
         spec = rig.sensors[name]
-        frames = load_camera(rig, name, [1])
+        frames = CameraFrames.of(rig, name, [1])
         motion = camera_motion([np.asarray(i) for i in frames.levels[1].intensity], spec.intrinsics, config)
         result = hand_eye(traj, name, frames.stamps, motion, spec.T_ref_sensor, float(spec.time_offset), config)
         th = torch.as_tensor(result.theta)

@@ -7,12 +7,12 @@ sys.path.insert(0, __import__("os").path.dirname(__file__))
 from hand_eye import HandEyeConfig, camera_motion, motion_residuals
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera.camera_registration import load_camera
+from moisst_ns.stages.camera.photometric import CameraFrames
 rig = load_rig(sys.argv[1]); truth = load_calibration(rig.root / "ground_truth.json")
 traj = ReferenceTrajectory.of(rig)
 for name in sys.argv[2:]:
     spec = rig.sensors[name]
-    frames = load_camera(rig, name, [1])
+    frames = CameraFrames.of(rig, name, [1])
     for method in ["RANSAC"]:
         m = camera_motion([np.asarray(i) for i in frames.levels[1].intensity], spec.intrinsics, HandEyeConfig(method=method))
         P = np.asarray(spec.T_ref_sensor); T = np.asarray(truth.T_ref_sensor[name])

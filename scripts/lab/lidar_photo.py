@@ -22,7 +22,7 @@ from scipy.optimize import least_squares
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.camera.camera_registration import load_camera
+from moisst_ns.stages.camera.photometric import CameraFrames
 from moisst_ns.stages.camera.lidar_map import bilinear, project, pyramid_factors, visible
 from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, place_points
 from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
@@ -69,7 +69,7 @@ def main() -> None:
     scans = load_scans(rig, lidar, traj, LidarFirstConfig(), log=lambda s: None)
     chosen = np.concatenate(scans.sources)
     points, times = scans.points[chosen], scans.times[chosen]
-    camera = load_camera(rig, ref, pyramid_factors(int(rig.sensors[ref].intrinsics["w"]), 40))
+    camera = CameraFrames.of(rig, ref, pyramid_factors(int(rig.sensors[ref].intrinsics["w"]), 40))
     stamps = camera.stamps + float(rig.sensors[ref].time_offset)
     rot, pos, _, _ = traj.pose_and_rates(stamps)
     arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))]

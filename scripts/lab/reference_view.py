@@ -20,7 +20,8 @@ from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
 from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
-from moisst_ns.stages.camera.camera_registration import load_camera, register_camera
+from moisst_ns.stages.camera.camera_registration import register_camera
+from moisst_ns.stages.camera.photometric import CameraFrames
 from moisst_ns.stages.camera.lidar_map import lidar_map, pyramid_factors
 from moisst_ns.stages.camera.photometric import Registration
 
@@ -41,7 +42,7 @@ def main() -> None:
     reference = rig.reference_sensor
     lidars = [n for n, s in rig.sensors.items() if s.type == "lidar" and n != reference]
     traj = ReferenceTrajectory.of(rig)
-    camera = load_camera(rig, reference, pyramid_factors(int(rig.sensors[reference].intrinsics["w"]), config.min_width))
+    camera = CameraFrames.of(rig, reference, pyramid_factors(int(rig.sensors[reference].intrinsics["w"]), config.min_width))
     start = time.time()
     for name in lidars:
         print(f"START {name}: {errors(calibration, truth, name)}", flush=True)

@@ -16,7 +16,7 @@ nerfstudio import.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, List
+from typing import Callable, List, Sequence, Tuple
 
 import numpy as np
 import open3d as o3d
@@ -50,11 +50,11 @@ class FeatureMapConfig:
     """Radius of that ring in the reference frame nearest the feature, undistorted pixels."""
 
 
-def _camera_matrix(intr: dict) -> np.ndarray:
+def camera_matrix(intr: dict) -> np.ndarray:
     return np.array([[float(intr["fl_x"]), 0.0, float(intr["cx"]) - 0.5], [0.0, float(intr["fl_y"]), float(intr["cy"]) - 0.5], [0.0, 0.0, 1.0]])
 
 
-def _distortion(intr: dict) -> np.ndarray:
+def distortion(intr: dict) -> np.ndarray:
     return np.array([float(intr.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")])
 
 
@@ -111,6 +111,36 @@ def triangulate(proj_a: Float[np.ndarray, "n 3 4"], proj_b: Float[np.ndarray, "n
     return hom[:, :3] / np.where(np.abs(hom[:, 3:]) > 1e-12, hom[:, 3:], np.nan)
 
 
+def sift_frames(rig: Rig, frames: Sequence, features: int) -> Tuple[List[np.ndarray], List[np.ndarray]]:
+    """SIFT keypoints (OpenCV pixel convention, centre of column ``i`` at ``i``) and descriptors of each frame's grey image.
+
+    Raises:
+        CameraStageError: an image cannot be read.
+    """
+    import cv2
+
+    sift = cv2.SIFT_create(nfeatures=features)
+    keys, descs = [], []
+    for frame in frames:
+        image = cv2.imread(str(rig.root / frame.file_path), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise CameraStageError(f"{rig.root / frame.file_path}: file_path: missing or not an image")
+        kp, desc = sift.detectAndCompute(image, None)
+        keys.append(np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2))
+        descs.append(desc if desc is not None else np.zeros((0, 128), np.float32))
+    return keys, descs
+
+
+def ratio_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> Tuple[np.ndarray, np.ndarray]:
+    """Indices ``(ia, ib)`` of the descriptors of ``a`` whose nearest in ``b`` passes Lowe's ratio test."""
+    import cv2
+
+    if desc_a is None or desc_b is None or len(desc_a) < 2 or len(desc_b) < 2:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    good = [m for m, n in (p for p in cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_a, desc_b, k=2) if len(p) == 2) if m.distance < ratio * n.distance]
+    return np.array([m.queryIdx for m in good], dtype=np.int64), np.array([m.trainIdx for m in good], dtype=np.int64)
+
+
 def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, log: Callable[[str], None] = print) -> Float[np.ndarray, "num 3"]:
     """Triangulated SIFT features of the reference camera, world frame, metres.
 
@@ -147,28 +177,15 @@ def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, lo
         t = stamps[f] + float(calibration.time_offset[name]) + torch.from_numpy(row_time(keys[f][i, 1] + 0.5, readout, height))
         return (traj(t) @ T).numpy()
 
-    K, dist = _camera_matrix(spec.intrinsics), _distortion(spec.intrinsics)
+    K, dist = camera_matrix(spec.intrinsics), distortion(spec.intrinsics)
     model = PinholeModel.of(spec.intrinsics)
-    sift = cv2.SIFT_create(nfeatures=config.features)
-    keys: List[np.ndarray] = []
-    descs: List[np.ndarray] = []
-    for frame in frames:
-        image = cv2.imread(str(rig.root / frame.file_path), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise CameraStageError(f"{rig.root / frame.file_path}: file_path: missing or not an image")
-        kp, desc = sift.detectAndCompute(image, None)
-        keys.append(np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2))
-        descs.append(desc if desc is not None else np.zeros((0, 128), np.float32))
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    keys, descs = sift_frames(rig, frames, config.features)
     points = []
     for a in range(len(frames)):
         for b in range(a + 1, min(a + 1 + config.max_gap, len(frames))):
-            if len(descs[a]) < 2 or len(descs[b]) < 2:
+            ia, ib = ratio_matches(descs[a], descs[b], config.ratio)
+            if len(ia) < 8:
                 continue
-            pairs = [m for m, n in (p for p in matcher.knnMatch(descs[a], descs[b], k=2) if len(p) == 2) if m.distance < config.ratio * n.distance]
-            if len(pairs) < 8:
-                continue
-            ia, ib = np.array([m.queryIdx for m in pairs]), np.array([m.trainIdx for m in pairs])
             norm = [cv2.undistortPoints(keys[f][i].reshape(-1, 1, 2), K, dist).reshape(-1, 2) for f, i in ((a, ia), (b, ib))]
             if readout:
                 seen = [pose_at(f, i) for f, i in ((a, ia), (b, ib))]

@@ -2,8 +2,9 @@
 over LiDAR-measured, metric geometry (no NeRF): grey levels of map points in a camera's frames against the reference
 camera's and its own frames some metres away, robust (Huber) least squares on the 7 corrections of eq. 12, coarse to
 fine over an image pyramid, occlusions by a z-buffer, rolling-shutter rows included (``photometric``), each fit
-guarded before it replaces the prior (``camera_guards``). docs/method.md, "Cameras against the map" and "Guards", has
-the formulation and the measurements. Nothing here imports nerfstudio.
+guarded before it replaces the prior (``camera_guards``); then a LiDAR the LiDAR-first stage left undetermined against
+the cameras at the same instants (``lidar_instant``). docs/method.md, "Cameras against the map" and "Guards", has the
+formulation and the measurements. Nothing here imports nerfstudio.
 """
 
 from __future__ import annotations
@@ -21,23 +22,13 @@ from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
 from moisst_ns.stages.camera.camera_map import FeatureMapConfig, feature_map
 from moisst_ns.stages.camera.feature_start import FeatureStart, FeatureStartConfig, feature_start
-from moisst_ns.stages.camera.lidar_map import CameraStageError, NoOverlapError, PinholeModel, lidar_map, load_pyramid, pyramid_factors
+from moisst_ns.stages.camera.lidar_map import CameraStageError, NoOverlapError, lidar_map, pyramid_factors
 from moisst_ns.stages.camera.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, convergence_tail, held_back_check, points_per_frame, reference_cost,
                                             resolution_spread, solve, split_half_spread, typical_error_significance)
 from moisst_ns.stages.camera.photometric import CameraFrames, PairSet, Registration, robust_cost
+from moisst_ns.stages.lidar.lidar_instant import InstantPlacement, place_lidars
 from moisst_ns.stages.trust.observability import huber_weights
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
-
-
-def load_camera(rig: Rig, sensor: str, factors: Sequence[int]) -> CameraFrames:
-    """A camera's frames sorted by stamp, as grey pyramids."""
-    frames = sorted(rig.frames_of(sensor), key=lambda f: f.timestamp)
-    if len(frames) < 2:
-        raise CameraStageError(f"{rig.root / 'rig.json'}: frames: camera {sensor} has {len(frames)} frame(s); at least 2 are needed")
-    stamps = np.array([f.timestamp for f in frames]) - float(rig.trajectory_stamps[0])
-    return CameraFrames(sensor, stamps, load_pyramid(rig, sensor, [f.file_path for f in frames], factors),
-                        PinholeModel.of(rig.sensors[sensor].intrinsics), float(rig.sensors[sensor].readout_time))
-
 
 
 @dataclass
@@ -281,6 +272,8 @@ class CameraStageResult:
     or ``"none"`` (no camera had enough frames to fit)."""
     map_note: str = ""
     """Why the map is the features on a rig with a LiDAR (``map_source``), else empty."""
+    lidars: Dict[str, InstantPlacement] = field(default_factory=dict)
+    """The LiDARs placed against the registered cameras at the same instants (``lidar_instant.place_lidars``)."""
 
 
 def _prior_kept(name: str, calibration: Calibration, why: str, rig: Optional[Rig] = None) -> CameraResult:
@@ -321,7 +314,8 @@ def camera_sensors(rig: Rig) -> List[str]:
 
 
 def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrationConfig, sensors: Optional[Sequence[str]] = None,
-                     log: Callable[[str], None] = print, lidar_undetermined: Optional[Dict[str, Sequence[str]]] = None) -> CameraStageResult:
+                     log: Callable[[str], None] = print, lidar_undetermined: Optional[Dict[str, Sequence[str]]] = None,
+                     lidar_sigma: Optional[Dict[str, Sequence[float]]] = None) -> CameraStageResult:
     """Register every non-reference camera against the map of the LiDARs at ``calibration``.
 
     Args:
@@ -333,7 +327,9 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         config: settings.
         sensors: the cameras to register (default: every non-reference camera).
         log: where progress lines go.
-        lidar_undetermined: per LiDAR, the parameters the LiDAR-first stage left undetermined (None: all determined).
+        lidar_undetermined: per LiDAR, the parameters the LiDAR-first stage left undetermined (None: all determined);
+            those LiDARs are then placed against the registered cameras at the same instants (``place_lidars``).
+        lidar_sigma: per LiDAR, the LiDAR-first stage's sigma (``PARAMETERS`` order), which ``place_lidars`` weighs.
 
     Returns:
         The result; ``calibration`` holds the registered cameras (or their priors where kept).
@@ -367,14 +363,14 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     reference_name = rig.reference_sensor if rig.sensors[rig.reference_sensor].type == "camera" else None
     widths = [int(rig.sensors[n].intrinsics["w"]) for n in cameras + ([reference_name] if reference_name else [])]
     factors = pyramid_factors(min(widths), config.min_width)
-    reference = load_camera(rig, reference_name, factors) if reference_name else None
+    reference = CameraFrames.of(rig, reference_name, factors) if reference_name else None
     floor = reference_cost(traj, world, reference, calibration, config) if reference is not None else None
     if floor is not None:
         log(f"[camera-registration] {reference_name}'s own photometric cost (its frames against each other): {floor:.4f}")
     for name in cameras:
         if name in results:
             continue
-        problem = Registration(traj, world, load_camera(rig, name, factors), reference, calibration, config)
+        problem = Registration(traj, world, CameraFrames.of(rig, name, factors), reference, calibration, config)
         initial = None
         if reference is not None and config.feature_start:
             initial = feature_start(traj, world, problem.camera, reference, np.asarray(calibration.T_ref_sensor[reference_name], dtype=np.float64),
@@ -400,4 +396,5 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
                                         note=f"{r.note}; {why}" if r.kept_prior and r.note else why)
             log(f"[camera-registration] {name}: {why}; it keeps its prior")
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
-    return CameraStageResult(out, {n: results[n] for n in cameras}, len(world), source, why_source)
+    lidars = place_lidars(rig, out, [n for n in cameras if not results[n].kept_prior], lidar_undetermined or {}, lidar_sigma or {}, log) if why_source else {}
+    return CameraStageResult(out, {n: results[n] for n in cameras}, len(world), source, why_source, lidars)

@@ -46,7 +46,7 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                  "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history,
                  "typical_error_significance": [finite_or_none(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None,
                  "blind": [p for p in PARAMETERS if p in r.blind],
-                 "held_there": r.held_there, "readout_time": r.readout_time, "prior_readout_time": r.readout_prior,
+                 "held_there": r.held_there, "map_source": result.map_source, "readout_time": r.readout_time, "prior_readout_time": r.readout_prior,
                  **({"readout_estimate": r.readout_estimate, "readout_sigma": finite_or_none(r.readout_sigma), "readout_note": r.readout_note}
                     if r.readout_estimate is not None else {}),
                  **parts}
@@ -54,7 +54,7 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
             entry["errors_before"], entry["errors_after"] = before[name], after[name]
         sensors[name] = entry
     return {"stage": "camera-registration", "config": asdict(config), "map_points": result.map_points, "map_source": result.map_source,
-            "map_note": result.map_note, "sensors": sensors}
+            "map_note": result.map_note, "sensors": sensors, "lidars": {n: r.to_json() for n, r in result.lidars.items()}}
 
 
 def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationConfig, start: Calibration, truth: Optional[Calibration],

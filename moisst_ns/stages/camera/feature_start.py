@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
 from moisst_ns.stages.camera.camera_guards import SCALE
-from moisst_ns.stages.camera.camera_map import _camera_matrix, _distortion
+from moisst_ns.stages.camera.camera_map import camera_matrix, distortion, ratio_matches
 from moisst_ns.stages.camera.lidar_map import PinholeModel, project, visible, world_to_camera
 from moisst_ns.stages.camera.photometric import CameraFrames, CameraModel
 
@@ -158,9 +158,8 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
         reference_landmarks(world, ref_poses[j], ref_images[j], reference.model, config.features,
                             projected=ref_model.project(np.zeros(7), reference.model, world, np.full(len(world), j)) if reference.readout else None)
         for j in range(len(ref_poses))]
-    K, dist = _camera_matrix(intrinsics), _distortion(intrinsics)
+    K, dist = camera_matrix(intrinsics), distortion(intrinsics)
     threshold = max(1.5, config.ransac_fraction * camera.model.width)
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
     model = CameraModel(traj, prior, prior_offset, camera.stamps, camera.readout, camera.model)
     base = traj(torch.from_numpy(camera.stamps + prior_offset)).numpy()  # world_T_ref at each frame (prior offset)
     height = camera.model.height
@@ -172,12 +171,12 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
         if not near or descriptors is None or len(uv_kp) < 4:
             continue
         for j in near:  # the ratio test within one reference frame: the same point in two frames is no ambiguity
-            good = [m[0] for m in matcher.knnMatch(descriptors, landmarks[j][1], k=2) if len(m) == 2 and m[0].distance < config.ratio * m[1].distance]
-            if good:
-                world_pts = landmarks[j][0][[m.trainIdx for m in good]]
+            query, train = ratio_matches(descriptors, landmarks[j][1], config.ratio)
+            if len(query):
+                world_pts = landmarks[j][0][train]
                 points.append(world_pts)
-                observed.append(uv_kp[[m.queryIdx for m in good]])
-                frames.append(np.full(len(good), i))
+                observed.append(uv_kp[query])
+                frames.append(np.full(len(query), i))
                 # the same points in the vehicle frame at this frame's time (prior offset): every frame's matches then
                 # share one unknown pose, ref_T_c (an offset error moves them all about alike: a lever-arm error)
                 if camera.readout:  # each match at its observed row's time

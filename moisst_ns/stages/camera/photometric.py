@@ -5,16 +5,16 @@ in ``moisst_ns.stages.camera.camera_registration``'s docstring. No nerfstudio im
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Optional, Tuple
+from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 from jaxtyping import Float, Int
 
-from moisst_ns.rig.format import Calibration
+from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, row_time, row_times, sensor_pose
 from moisst_ns.stages.lidar.lidar_geometry import right_jacobian
-from moisst_ns.stages.camera.lidar_map import ImageStack, PinholeModel, bilinear, project, visible, world_to_camera
+from moisst_ns.stages.camera.lidar_map import CameraStageError, ImageStack, PinholeModel, bilinear, load_pyramid, project, visible, world_to_camera
 
 
 @dataclass
@@ -28,6 +28,16 @@ class CameraFrames:
     """Full-resolution intrinsics."""
     readout: float = 0.0
     """Rolling-shutter readout time, seconds (rig.json's ``readout_time``; 0: global shutter)."""
+
+    @classmethod
+    def of(cls, rig: Rig, sensor: str, factors: Sequence[int]) -> "CameraFrames":
+        """A camera's frames sorted by stamp, as grey pyramids (``factors``)."""
+        frames = sorted(rig.frames_of(sensor), key=lambda f: f.timestamp)
+        if len(frames) < 2:
+            raise CameraStageError(f"{rig.root / 'rig.json'}: frames: camera {sensor} has {len(frames)} frame(s); at least 2 are needed")
+        stamps = np.array([f.timestamp for f in frames]) - float(rig.trajectory_stamps[0])
+        return cls(sensor, stamps, load_pyramid(rig, sensor, [f.file_path for f in frames], factors),
+                   PinholeModel.of(rig.sensors[sensor].intrinsics), float(rig.sensors[sensor].readout_time))
 
 
 PIXEL_CHUNK = 65536

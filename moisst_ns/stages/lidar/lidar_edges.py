@@ -24,26 +24,15 @@ JUMP = (0.5, 0.1)
 range (the near side of a discontinuity: its silhouette is what the camera sees)."""
 
 
-def depth_edges(points: Float[np.ndarray, "num 3"]) -> Int[np.ndarray, "edges"]:
-    """Indices of a scan's points on the near side of a range discontinuity between neighbours of one ring (an
-    occluding contour across the rings: a pole's side) or of adjacent rings (along them: a car's roof against the
-    building behind, which is what places the vertical lever arm).
+def scan_edges(points: Float[np.ndarray, "num 3"]) -> Tuple[Int[np.ndarray, "edges"], float]:
+    """A scan's depth edges: indices of its points on the near side of a range discontinuity between neighbours of one
+    ring (an occluding contour across the rings: a pole's side) or of adjacent rings (along them: a car's roof against
+    the building behind, which is what places the vertical lever arm); and the coarsest angle between the neighbours
+    they compare.
 
     Between rings, flat ground seen at grazing incidence also jumps in range (a ring at -5 deg meets it at 19 m from
     1.7 m up, the next one 1.1 deg higher at 25 m): such a jump is an edge only beyond where the line through the near
     point and its other neighbour (the surface, continued) meets the farther ray, and only where that neighbour exists.
-
-    Args:
-        points: one scan, in the LiDAR frame (z up, a spinning scanner), metres.
-
-    Returns:
-        Indices into ``points`` (sorted).
-    """
-    return scan_edges(points)[0]
-
-
-def scan_edges(points: Float[np.ndarray, "num 3"]) -> Tuple[Int[np.ndarray, "edges"], float]:
-    """A scan's ``depth_edges`` and the coarsest angle between the neighbours they compare.
 
     A depth edge's near point lies anywhere between its occluding contour and one neighbour step inside the object, all
     on the object's side: for a roof, every one below the edge the camera sees. So the shared view's placement is biased

@@ -12,7 +12,7 @@ import numpy as np
 
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
-from moisst_ns.rig.trust import finite_or_none
+from moisst_ns.rig.trust import PARAMETERS, finite_or_none
 from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, LidarFirstResult, LidarResult
 from moisst_ns.stages.trust.observability import MIN_EFFECT, UNITS
 
@@ -127,3 +127,22 @@ def _plot(result: LidarFirstResult, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def stage_sigma(entry: dict):
+    """A LiDAR's sigma from its LiDAR-first record (trust order; m, rad, s) and where it comes from: the formal one,
+    at least half the split-half difference and the release check's spread where those ran, the prior's sigma for
+    a parameter held at the prior (``lidar_first.held_sigma``), and for a parameter placed against the cameras at the
+    same instants (``shared_instant``, ``lidar_instant.place_lidars``) that placement's sigma, its lever arm's with what
+    the time offset's sigma moves it along the drive."""
+    sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
+    if entry.get("sigma_split_half"):  # the two halves of the drive fitted apart
+        sigma, source = list(np.fmax(sigma, [np.nan if v is None else v for v in entry["sigma_split_half"]])), "LiDAR-first formal and split-half"
+    if entry.get("held_check"):  # the free parameters' spread when the held ones are released; the held ones' prior sigma
+        check = entry["held_check"]
+        sigma, source = list(np.fmax(np.fmax(sigma, check["sigma_release"]), check.get("sigma_held", np.zeros(7)))), source + " and release"
+    instant = entry.get("shared_instant") or {}
+    for p in instant.get("taken", []):
+        i = PARAMETERS.index(p)
+        sigma[i] = float(np.hypot(instant["sigma"][i], instant["along_track"][i] * sigma[6])) if i < 3 else instant["sigma"][i]
+    return sigma, source + (" and the shared instants" if instant.get("taken") else "")

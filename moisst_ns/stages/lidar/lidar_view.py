@@ -110,7 +110,7 @@ def view_rows(traj: ReferenceTrajectory, ext: Extrinsic, scans, view: ReferenceV
         traj, ext: trajectory and the LiDAR calibration the scans are placed with.
         scans: the stage's ``ScanSet``.
         view: the reference camera's frames.
-        edges: per scan, its depth-edge points (indices within the scan, ``depth_edges``).
+        edges: per scan, its depth-edge points (indices within the scan, ``scan_edges``).
         scan_ids: the scans to use.
         max_gap: a scan farther than this in time from every reference frame is not used, seconds.
 
@@ -156,7 +156,7 @@ class SharedView:
 
     view: ReferenceView
     edges: List[np.ndarray]
-    """Per scan, its depth-edge points (indices within the scan, ``lidar_edges.depth_edges``)."""
+    """Per scan, its depth-edge points (indices within the scan, ``lidar_edges.scan_edges``)."""
     spacing: float
     """The scans' median neighbour spacing (``lidar_edges.scan_edges``), radians."""
     rows: Optional[ViewRows] = None

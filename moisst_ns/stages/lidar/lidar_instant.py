@@ -1,0 +1,298 @@
+"""A LiDAR placed against what two cameras triangulate at the same instant (issue 34: the shared view of a straight drive).
+
+The LiDAR-first stage places a LiDAR by its scans' consistency along the drive: on an almost straight drive that leaves
+its lever arm and roll undetermined (KITTI raw 0048), and it calibrates the LiDAR in the frame the trajectory is given
+in, which a real trajectory source need not share with the reference camera (KITTI's OXTS trajectory is turned 0.67 /
+0.45° from image_00). Here, per reference frame, SIFT matches between the reference camera and another registered camera
+that sees the same instant are triangulated in the reference camera's frame (``camera_map.triangulate``); each point must
+lie on the surface of the LiDAR's scan of that instant, placed by eq. 1-2: point-to-plane residuals, each weighted by
+its noise (the plane's and the stereo depth's along the plane's normal), Huber, fitted in the LiDAR's rotation and lever
+arm (its time offset held: on a straight drive it trades with the along-track lever arm) and one depth scale per camera
+pair (what an error of the pair's baseline does, which the LiDAR's range pins). Only the milliseconds between the
+cameras' and the scan's instants pass through the trajectory, so its drift and turn do not enter, and a moving car is
+seen where both sensors see it. A parameter is placed where its sigma (``InstantPlacement.sigma``) is below a typical
+prior error. No nerfstudio import.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Callable, Dict, List, Sequence, Tuple
+
+import numpy as np
+import open3d as o3d
+import torch
+from jaxtyping import Float
+
+from moisst_ns.rig.format import Calibration, Rig
+from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
+from moisst_ns.rig.trust import PARAMETERS, parameter_difference
+from moisst_ns.stages.camera.camera_map import camera_matrix, distortion, sift_frames, ratio_matches, triangulate
+from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, placement_jacobian, place_points
+from moisst_ns.stages.lidar.lidar_scans import ScanSet
+from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, TEST_STEPS, huber_weights
+from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
+
+PIXEL_SIGMA = 0.5
+"""A matched keypoint's position noise, pixels."""
+PLANE_SIGMA = 0.02
+"""A LiDAR surface's noise beside its neighbourhood's thickness, metres."""
+MIN_BASELINE = 0.2
+"""Camera pairs closer than this triangulate depth too noisily to use, metres."""
+DEPTH_RANGE = (2.0, 40.0)
+"""Triangulated points kept within this depth of the reference camera, metres."""
+SAME_INSTANT = 0.05
+"""A camera frame or scan within this of a reference frame (after the time offsets) sees its instant, seconds."""
+RADII = (2.0, 1.0, 0.5, 0.3, 0.2, 0.15, 0.15)
+"""Nearest-neighbour radius of each outer iteration (coarse to fine), metres."""
+HUBER = 1.5
+"""Huber scale of the weighted residuals (sigmas)."""
+MIN_ROWS = 200
+"""Fewer point-to-plane rows than this place nothing."""
+
+
+@dataclass
+class InstantPoints:
+    """One camera pair's triangulated matches at one reference frame, world frame."""
+
+    time: float
+    """The reference frame's instant, seconds since ``t0``."""
+    origin: Float[np.ndarray, "num 3"]
+    """The reference camera's centre each match was seen from (its row's pose with a rolling shutter), metres."""
+    ray: Float[np.ndarray, "num 3"]
+    """From there to the triangulated point, metres: the point at depth scale ``s`` is ``origin + s * ray``."""
+    depth_sigma: Float[np.ndarray, "num"]
+    """The depth noise along the ray, metres."""
+    pair: int
+    """Index of the camera pair (its depth scale)."""
+
+
+@dataclass
+class InstantPlacement:
+    """What the shared instant says about one LiDAR."""
+
+    estimate: Extrinsic
+    """The fit of every parameter but the time offset."""
+    sigma: List[float]
+    """Per ``PARAMETERS`` (m, rad; the time offset's nan): the frame-clustered sigma, at least half the difference of the
+    drive's halves and of the camera pairs fitted alone, and the whole difference to the fit with the pairs' depth scales
+    held at 1 (where the cameras' calibration and the LiDAR's range disagree, what that does to the placement)."""
+    placed: List[str]
+    """The parameters whose sigma is below a typical prior error."""
+    rows: int
+    cameras: List[str]
+    scales: List[float] = field(default_factory=list)
+    """The depth scale fitted per camera pair (1: its baseline as calibrated)."""
+    along_track: List[float] = field(default_factory=list)
+    """The mean velocity in the reference frame, m/s: a time-offset error ``e`` moves the placed lever arm by
+    ``-along_track * e`` (the time offset is held)."""
+    taken: List[str] = field(default_factory=list)
+    """The parameters the LiDAR's calibration took from here (``place_lidars``)."""
+
+    def to_json(self) -> dict:
+        return {"T_ref_sensor": self.estimate.matrix().tolist(), "sigma": [None if not np.isfinite(s) else float(s) for s in self.sigma],
+                "placed": self.placed, "rows": self.rows, "cameras": self.cameras, "scales": self.scales, "along_track": self.along_track,
+                "taken": self.taken}
+
+
+def instant_points(rig: Rig, traj: ReferenceTrajectory, calibration: Calibration, camera: str, pair: int, features: int = 4000,
+                   ratio: float = 0.8) -> List[InstantPoints]:
+    """The reference camera's matches with ``camera`` at the same instants, triangulated from each match's two poses
+    (at its rows' times with a rolling shutter; ``camera_map.triangulate``), kept within ``DEPTH_RANGE`` of both
+    cameras and reprojecting within 1 pixel in ``camera``."""
+    import cv2
+
+    ref = rig.reference_sensor
+    t0 = float(rig.trajectory_stamps[0])
+    frames = {n: sorted(rig.frames_of(n), key=lambda f: f.timestamp) for n in (ref, camera)}
+    at = {n: np.array([f.timestamp for f in frames[n]]) - t0 + float(calibration.time_offset[n]) for n in (ref, camera)}
+    nearest = [int(np.argmin(np.abs(at[camera] - t))) for t in at[ref]]
+    used = [(k, j) for k, j in enumerate(nearest) if abs(at[camera][j] - at[ref][k]) <= SAME_INSTANT]
+    keys = {ref: sift_frames(rig, [frames[ref][k] for k, _ in used], features), camera: sift_frames(rig, [frames[camera][j] for _, j in used], features)}
+
+    def poses(name: str, frame: int, xy: np.ndarray) -> np.ndarray:
+        """``world_T_camera`` of each keypoint (n, 4, 4): at its row's time with a rolling shutter."""
+        spec = rig.sensors[name]
+        t = at[name][frame] + row_time(xy[:, 1] + 0.5, float(spec.readout_time), int(spec.intrinsics["h"]))
+        return (traj(torch.from_numpy(np.asarray(t, dtype=np.float64))) @ torch.from_numpy(np.asarray(calibration.T_ref_sensor[name], dtype=np.float64))).numpy()
+
+    out = []
+    for i, (k, j) in enumerate(used):
+        ia, ib = ratio_matches(keys[ref][1][i], keys[camera][1][i], ratio)
+        if len(ia) < 8:
+            continue
+        xy = {ref: keys[ref][0][i][ia], camera: keys[camera][0][i][ib]}
+        norm = {n: cv2.undistortPoints(xy[n].reshape(-1, 1, 2), camera_matrix(rig.sensors[n].intrinsics),
+                                       distortion(rig.sensors[n].intrinsics)).reshape(-1, 2) for n in (ref, camera)}
+        pose = {ref: poses(ref, k, xy[ref]), camera: poses(camera, j, xy[camera])}
+        inv = {n: np.linalg.inv(pose[n]) for n in (ref, camera)}
+        world = triangulate(inv[ref][:, :3], inv[camera][:, :3], norm[ref], norm[camera])
+        cam = {n: np.einsum("nij,nj->ni", inv[n][:, :3, :3], np.nan_to_num(world)) + inv[n][:, :3, 3] for n in (ref, camera)}
+        depth = np.where(np.abs(cam[camera][:, 2:]) > 1e-9, cam[camera][:, 2:], 1e-9)
+        reproj = np.linalg.norm(cam[camera][:, :2] / depth - norm[camera], axis=1) * float(rig.sensors[camera].intrinsics["fl_x"])
+        ok = np.isfinite(world).all(axis=1) & (reproj < 1.0)
+        for n in (ref, camera):
+            ok &= (cam[n][:, 2] > DEPTH_RANGE[0]) & (cam[n][:, 2] < DEPTH_RANGE[1])
+        origin, ray = pose[ref][ok, :3, 3], world[ok] - pose[ref][ok, :3, 3]
+        baseline = np.linalg.norm(pose[camera][ok, :3, 3] - origin, axis=1)
+        sigma = np.sum(ray**2, axis=1) / (float(rig.sensors[ref].intrinsics["fl_x"]) * np.maximum(baseline, 1e-6)) * PIXEL_SIGMA
+        out.append(InstantPoints(float(at[ref][k]), origin, ray, sigma, pair))
+    return out
+
+
+def _rows(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, sets: Sequence[InstantPoints], scales: np.ndarray, radius: float):
+    """Point-to-plane correspondences: each triangulated point's nearest planar LiDAR point of the scan at its instant
+    within ``radius`` (world frame). Returns (LiDAR point index, world normal, origin, ray, pair, weight, set)."""
+    rows = []
+    for s, pts in enumerate(sets):
+        k = int(np.argmin(np.abs(scans.stamps + ext.time_offset - pts.time)))
+        if abs(scans.stamps[k] + ext.time_offset - pts.time) > SAME_INSTANT or not len(pts.ray):
+            continue
+        part = scans.scan(k)
+        index = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(place_points(traj, ext, scans.points[part], scans.times[part])))
+        index.knn_index()
+        found, dist2 = index.knn_search(o3d.core.Tensor(pts.origin + scales[pts.pair] * pts.ray), 1)
+        g = found.numpy()[:, 0].astype(np.int64) + part.start
+        keep = (dist2.numpy()[:, 0] < radius**2) & scans.planar[g]
+        world_R_ref = traj.pose_and_rates(np.array([pts.time]))[0][0]  # the scan's turn over its sweep is neglected here
+        normal = scans.normals[g[keep]] @ (world_R_ref @ ext.rotation).T
+        ray = pts.ray[keep]
+        along = np.abs(np.sum(normal * ray, axis=1)) / np.linalg.norm(ray, axis=1)
+        weight = 1.0 / np.sqrt(PLANE_SIGMA**2 + scans.thickness[g[keep]] ** 2 + (along * pts.depth_sigma[keep] * scales[pts.pair]) ** 2)
+        rows.append((g[keep], normal, pts.origin[keep], ray, np.full(keep.sum(), pts.pair), weight, np.full(keep.sum(), s)))
+    return [np.concatenate(c) for c in zip(*rows)] if rows else None
+
+
+def fit_instant(traj: ReferenceTrajectory, start: Extrinsic, scans: ScanSet, sets: Sequence[InstantPoints], pairs: int,
+                radii: Sequence[float] = RADII, fit_scales: bool = True) -> Tuple[Extrinsic, np.ndarray, int, np.ndarray]:
+    """Gauss-Newton (Huber IRLS) of the rotation, lever arm and (``fit_scales``) the pairs' depth scales, coarse to
+    fine radii.
+
+    Returns:
+        (the estimate, the scales, rows used, the frame-clustered sigma in Jacobian order (rotation, lever arm; rad, m)).
+    """
+    ext, scales, sigma, rows = start, np.ones(pairs), np.full(6, np.inf), 0
+    for radius in radii:
+        found = _rows(traj, ext, scans, sets, scales, radius)
+        if found is None or len(found[0]) < MIN_ROWS:
+            return ext, scales, 0 if found is None else len(found[0]), np.full(6, np.inf)
+        g, normal, origin, ray, pair, weight, which = found
+        for _ in range(3):
+            nx, jac = placement_jacobian(traj, ext, np.zeros(7), scans.points[g], scans.times[g], normal)
+            res = weight * (np.sum(normal * (origin + scales[pair][:, None] * ray), axis=1) - nx)
+            J = np.zeros((len(g), 6 + pairs))
+            J[:, :6] = -weight[:, None] * jac[:, :6]
+            J[np.arange(len(g)), 6 + pair] = weight * np.sum(normal * ray, axis=1)
+            J = J if fit_scales else J[:, :6]
+            root = np.sqrt(huber_weights(res, HUBER))
+            step = np.linalg.lstsq(J * root[:, None], -res * root, rcond=None)[0]
+            ext, scales = ext.updated(np.concatenate([step[:6], [0.0]])), scales + (step[6:] if fit_scales else 0.0)
+        rows = len(g)
+        sigma = least_squares_sigma(J * root[:, None], res * root, which).sigma[:6]
+    return ext, scales, rows, sigma
+
+
+def place_lidar(rig: Rig, calibration: Calibration, lidar: str, scans: ScanSet, cameras: Sequence[str],
+                log: Callable[[str], None] = print) -> "InstantPlacement | None":
+    """The LiDAR ``lidar`` against ``cameras`` (registered, in ``calibration``) and the reference camera at the same
+    instants, from its estimate in ``calibration``; None when no pair of them has ``MIN_BASELINE`` or ``MIN_ROWS``.
+
+    Args:
+        rig: the dataset (its reference sensor a camera).
+        calibration: the cameras' and the LiDAR's current estimate.
+        lidar: the LiDAR's name.
+        scans: its scans (``lidar_scans.load_scans``).
+        cameras: the cameras that may pair with the reference camera.
+        log: where progress lines go.
+    """
+    traj = ReferenceTrajectory.of(rig)
+    ref = np.asarray(calibration.T_ref_sensor[rig.reference_sensor], dtype=np.float64)
+    usable = [c for c in cameras if np.linalg.norm(np.asarray(calibration.T_ref_sensor[c])[:3, 3] - ref[:3, 3]) >= MIN_BASELINE]
+    found = {c: instant_points(rig, traj, calibration, c, 0) for c in usable}
+    usable = [c for c in usable if sum(len(p.ray) for p in found[c])]
+    sets = [replace(p, pair=i) for i, c in enumerate(usable) for p in found[c]]
+    if sum(len(s.ray) for s in sets) < MIN_ROWS:
+        return None
+    T = np.asarray(calibration.T_ref_sensor[lidar], dtype=np.float64)
+    start = Extrinsic(T[:3, :3].copy(), T[:3, 3].copy(), float(calibration.time_offset[lidar]))
+    whole, scales, rows, formal = fit_instant(traj, start, scans, sets, len(usable))
+    if rows < MIN_ROWS:
+        return None
+    middle = np.median([s.time for s in sets])
+    halves = [fit_instant(traj, whole, scans, [s for s in sets if (s.time < middle) == first], len(usable), RADII[-3:])
+              for first in (True, False)]
+    apart = np.full(6, np.inf)
+    if all(h[2] >= MIN_ROWS for h in halves):
+        apart = np.abs(parameter_difference(halves[0][0].matrix(), 0.0, halves[1][0].matrix(), 0.0)[:6])
+    fixed = fit_instant(traj, whole, scans, sets, len(usable), RADII[-3:], fit_scales=False)
+    if fixed[2] >= MIN_ROWS:  # the pairs' baselines as calibrated instead of as the LiDAR's range scales them
+        apart = np.fmax(apart, 2 * np.abs(parameter_difference(whole.matrix(), 0.0, fixed[0].matrix(), 0.0)[:6]))
+    if len(usable) > 1:  # each camera pair alone: what the cameras' own calibration errors do
+        alone = [fit_instant(traj, whole, scans, [replace(s, pair=0) for s in sets if s.pair == i], 1, RADII[-3:]) for i in range(len(usable))]
+        fits = [a[0].matrix() for a in alone if a[2] >= MIN_ROWS]
+        for a in fits[1:]:
+            apart = np.fmax(apart, np.abs(parameter_difference(fits[0], 0.0, a, 0.0)[:6]))
+    sigma = [float(max(formal[JACOBIAN_ORDER[i]], apart[i] / 2)) for i in range(6)] + [float("nan")]
+    placed = [p for p, s, typical in zip(PARAMETERS[:6], sigma, TEST_STEPS) if s <= typical]
+    rot, _, _, velocity = traj.pose_and_rates(np.array([p.time for p in sets]))
+    along = np.mean(np.einsum("nji,nj->ni", rot, velocity), axis=0)
+    log(f"[camera-registration] {lidar} against {', '.join(usable)} at the same instants: {rows} rows; sigma "
+        + ", ".join(f"{p} {s * (100 if i < 3 else np.rad2deg(1.0)):.3g}" for i, (p, s) in enumerate(zip(PARAMETERS[:6], sigma)))
+        + f" (cm, deg); depth scales {', '.join(f'{v:.4f}' for v in scales)}; placed: {', '.join(placed) or 'nothing'}")
+    return InstantPlacement(whole, sigma, placed, rows, list(usable), [float(v) for v in scales], [float(v) for v in along])
+
+
+def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], undetermined: Dict[str, Sequence[str]],
+                 motion_sigma: Dict[str, Sequence[float]], log: Callable[[str], None] = print) -> Dict[str, InstantPlacement]:
+    """Every LiDAR the LiDAR-first stage left partly undetermined, against the registered ``cameras`` at the same instants;
+    ``calibration`` takes, per LiDAR, the parameters placed here that its scans' motion did not determine or determined
+    less precisely (``motion_sigma``, ``PARAMETERS`` order), and every one placed here when one of them lies more than 3
+    combined sigma from the motion's: the motion calibrates a LiDAR in the frame the trajectory is given in, the shared
+    instant in the reference camera's, which defines the rig's, and such a difference says the two frames differ (KITTI
+    raw 0048: the OXTS trajectory turned 0.67 / 0.45 deg from image_00). Changes ``calibration`` in place.
+
+    Args:
+        rig: the dataset (its reference sensor a camera).
+        calibration: the cameras registered, the LiDARs at the LiDAR-first estimate.
+        cameras: the cameras registered (not kept at their priors).
+        undetermined: per LiDAR, what the LiDAR-first stage left undetermined (``LidarResult.undetermined``).
+        motion_sigma: per LiDAR, the LiDAR-first stage's sigma (an empty dict: only the undetermined are taken).
+        log: where progress lines go.
+
+    Returns:
+        Per LiDAR placed, the placement with ``taken`` set.
+    """
+    from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
+
+    out = {}
+    for lidar, unknown in undetermined.items():
+        if not unknown or not cameras:
+            continue
+        scans = load_scans(rig, lidar, ReferenceTrajectory.of(rig), LidarFirstConfig(), log)
+        found = place_lidar(rig, calibration, lidar, scans, cameras, log)
+        if found is None:
+            log(f"[camera-registration] {lidar}: no pair of cameras {MIN_BASELINE} m apart puts {MIN_ROWS} points on its scans at the same "
+                "instants: nothing placed")
+            continue
+        T = np.asarray(calibration.T_ref_sensor[lidar], dtype=np.float64)
+        moved = np.asarray(parameter_difference(T, 0.0, found.estimate.matrix(), 0.0)[:6])
+        motion, why = motion_sigma.get(lidar), {}
+        apart = {p: abs(moved[i]) / np.hypot(found.sigma[i], motion[i]) for i, p in enumerate(PARAMETERS[:6])
+                 if motion is not None and p in found.placed and p not in unknown}
+        other_frame = max(apart.values(), default=0.0) > 3  # the trajectory's frame is not the reference camera's
+        for i, p in enumerate(PARAMETERS[:6]):
+            unit = 100.0 if i < 3 else float(np.rad2deg(1.0))
+            if p in found.placed and p in unknown:
+                why[p] = "undetermined"
+            elif p in apart and (other_frame or found.sigma[i] < motion[i]):
+                why[p] = f"sigma {found.sigma[i] * unit:.3g} against the motion's {motion[i] * unit:.3g}, {apart[p]:.1f} sigma apart"
+        found.taken = list(why)
+        increment = np.zeros(7)
+        for p in found.taken:
+            i = PARAMETERS.index(p)
+            increment[JACOBIAN_ORDER[i]] = moved[i]
+        ext = Extrinsic(T[:3, :3], T[:3, 3], float(calibration.time_offset[lidar])).updated(increment)
+        calibration.T_ref_sensor[lidar] = ext.matrix()
+        log(f"[camera-registration] {lidar}: takes from the shared instants {'; '.join(f'{p} ({w})' for p, w in why.items()) or 'nothing'} (cm, deg)")
+        out[lidar] = found
+    return out

@@ -1,0 +1,90 @@
+"""A LiDAR placed against what two cameras triangulate at the same instant (``stages/lidar/lidar_instant``): on the real
+KITTI raw drive 0048 (skipped without ../shared/data), and the sigma a LiDAR's record then carries."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from moisst_ns.datasets.kitti_raw import KittiRawConfig, convert
+from moisst_ns.rig.format import Calibration, load_calibration, load_rig
+from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.rig.trust import parameter_difference
+from moisst_ns.stages.lidar.lidar_instant import place_lidar, place_lidars
+from moisst_ns.stages.lidar.lidar_report import stage_sigma
+from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti-raw-2011_09_26_drive_0048"
+DRIVE = "2011_09_26_drive_0048_sync"
+needs_data = pytest.mark.skipif(not (DATA / DRIVE).is_dir(), reason=f"KITTI raw drive 0048 not found at {DATA} (see ../shared/data/README.md)")
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """The whole drive, the stereo pairs image_00/01 and image_00/03 and the Velodyne, images halved, paper priors;
+    the cameras at the factory calibration, the Velodyne at the prior's rotation and lever arm with the factory's time
+    offset (which the shared instant cannot tell from its along-track lever arm on this drive)."""
+    config = KittiRawConfig(root=DATA, drive=DRIVE, out=tmp_path_factory.mktemp("raw") / "rig", cameras=("image_01", "image_03"),
+                            downscale=2, points_per_scan=60000, perturb="paper", seed=0)
+    rig = load_rig(convert(config))
+    truth = load_calibration(rig.root / "ground_truth.json")
+    start = Calibration(truth.reference_sensor, dict(truth.T_ref_sensor), dict(truth.time_offset))
+    start.T_ref_sensor["velodyne"] = rig.sensors["velodyne"].T_ref_sensor
+    scans = load_scans(rig, "velodyne", ReferenceTrajectory.of(rig), LidarFirstConfig(), log=lambda line: None)
+    return rig, truth, start, scans
+
+
+@needs_data
+def test_the_stereo_cameras_place_the_velodyne_the_drive_cannot(drive):
+    """From 50 cm and 5 deg off on every axis (86.6 cm / 8.8 deg), the Velodyne ends within 6 cm per axis and 0.3 deg
+    per angle of the factory calibration (itself good to a few centimetres): the lever arm and the roll that this
+    almost straight drive's motion leaves undetermined, and the pitch and yaw without the OXTS trajectory's 0.67 / 0.45
+    deg turn from image_00 that the motion inherits."""
+    rig, truth, start, scans = drive
+    placed = place_lidar(rig, start, "velodyne", scans, ["image_01", "image_03"], log=lambda line: None)
+    error = np.abs(parameter_difference(truth.T_ref_sensor["velodyne"], 0.0, placed.estimate.matrix(), 0.0))
+    assert np.all(error[:3] < 0.06), error[:3]
+    assert np.all(np.rad2deg(error[3:6]) < 0.3), np.rad2deg(error[3:6])
+    assert {"x", "y", "roll", "pitch", "yaw"} <= set(placed.placed)
+    assert placed.cameras == ["image_01", "image_03"] and all(0.95 < s < 1.05 for s in placed.scales)
+
+
+@needs_data
+def test_only_what_the_motion_left_undetermined_is_taken_without_its_sigma(drive):
+    """Without the LiDAR-first stage's sigma, a LiDAR takes from the shared instants only the parameters that stage
+    left undetermined: the lever arm and the roll move, the pitch and the yaw stay exactly."""
+    rig, truth, start, scans = drive
+    calibration = Calibration(start.reference_sensor, dict(start.T_ref_sensor), dict(start.time_offset))
+    out = place_lidars(rig, calibration, ["image_01", "image_03"], {"velodyne": ["x", "y", "z", "roll"]}, {}, log=lambda line: None)
+    moved = np.abs(parameter_difference(start.T_ref_sensor["velodyne"], 0.0, calibration.T_ref_sensor["velodyne"], 0.0))
+    assert out["velodyne"].taken == ["x", "y", "z", "roll"]
+    assert np.all(moved[:3] > 0.2) and np.rad2deg(moved[3]) > 3.0  # the prior was 50 cm and 5.2 deg off on these
+    assert np.all(moved[4:6] < 1e-9)
+    assert calibration.time_offset["velodyne"] == start.time_offset["velodyne"]
+
+
+@needs_data
+def test_a_motion_estimate_many_sigma_away_hands_over_every_placed_parameter(drive):
+    """Where a parameter the motion determined lies more than 3 combined sigma from the shared instants' (here the
+    prior's pitch and yaw, 5 deg off, given a motion sigma of 0.01 deg), the two are in different frames: the LiDAR takes
+    every parameter the shared instants placed, pitch and yaw included, and ends within 0.3 deg of the factory's."""
+    rig, truth, start, scans = drive
+    calibration = Calibration(start.reference_sensor, dict(start.T_ref_sensor), dict(start.time_offset))
+    tight = [0.001] * 3 + [np.deg2rad(0.01)] * 3 + [0.001]
+    out = place_lidars(rig, calibration, ["image_01", "image_03"], {"velodyne": ["x", "y", "z", "roll"]}, {"velodyne": tight}, log=lambda line: None)
+    assert out["velodyne"].taken == out["velodyne"].placed and {"pitch", "yaw"} <= set(out["velodyne"].taken)
+    error = np.abs(parameter_difference(truth.T_ref_sensor["velodyne"], 0.0, calibration.T_ref_sensor["velodyne"], 0.0))
+    assert np.all(np.rad2deg(error[3:6]) < 0.3), np.rad2deg(error[3:6])
+
+
+def test_a_parameter_placed_at_the_shared_instants_carries_their_sigma_and_the_time_offsets_along_the_drive():
+    """``stage_sigma``: a taken lever-arm component is the placement's sigma with the time offset's sigma times the
+    drive's velocity along it (a time offset error moves the placed lever arm along the drive); a taken angle is the
+    placement's; what was not taken keeps the LiDAR-first sigma (the held prior's where it was held)."""
+    entry = {"observability": [{"sigma": s} for s in (0.01, 0.02, 0.03, 0.001, 0.002, 0.003, 0.004)],
+             "held_check": {"sigma_release": [0.0] * 7, "sigma_held": [0.5, 0.5, 0.5, 0.087, 0.0, 0.0, 0.0]},
+             "shared_instant": {"taken": ["x", "z", "roll"], "sigma": [0.011, 0.012, 0.013, 0.0014, 0.0015, 0.0016, None],
+                                "along_track": [0.1, 0.0, 7.8]}}
+    sigma, source = stage_sigma(entry)
+    np.testing.assert_allclose(sigma, [np.hypot(0.011, 0.1 * 0.004), 0.5, np.hypot(0.013, 7.8 * 0.004), 0.0014, 0.002, 0.003, 0.004])
+    assert source.endswith("and the shared instants")
