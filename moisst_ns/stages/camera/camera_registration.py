@@ -327,9 +327,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         config: settings.
         sensors: the cameras to register (default: every non-reference camera).
         log: where progress lines go.
-        lidar_undetermined: per LiDAR, the parameters the LiDAR-first stage left undetermined (None: all determined);
-            those LiDARs are then placed against the registered cameras at the same instants (``place_lidars``).
-        lidar_sigma: per LiDAR, the LiDAR-first stage's sigma (``PARAMETERS`` order), which ``place_lidars`` weighs.
+        lidar_undetermined: per LiDAR, the parameters the LiDAR-first stage left undetermined (None: all determined).
+        lidar_sigma: per LiDAR, that stage's sigma (``PARAMETERS`` order); both feed ``place_lidars``.
 
     Returns:
         The result; ``calibration`` holds the registered cameras (or their priors where kept).
@@ -396,5 +395,6 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
                                         note=f"{r.note}; {why}" if r.kept_prior and r.note else why)
             log(f"[camera-registration] {name}: {why}; it keeps its prior")
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
-    lidars = place_lidars(rig, out, [n for n in cameras if not results[n].kept_prior], lidar_undetermined or {}, lidar_sigma or {}, log) if why_source else {}
+    lidars = (place_lidars(rig, out, [n for n in cameras if not results[n].kept_prior], lidar_undetermined or {}, lidar_sigma or {}, log)
+              if why_source and config.estimate_extrinsic else {})  # an extrinsic the user holds stays
     return CameraStageResult(out, {n: results[n] for n in cameras}, len(world), source, why_source, lidars)
