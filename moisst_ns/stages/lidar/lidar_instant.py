@@ -4,7 +4,7 @@ The LiDAR-first stage places a LiDAR by its scans' consistency along the drive: 
 its lever arm and roll undetermined (KITTI raw 0048), and it calibrates the LiDAR in the frame the trajectory is given
 in, which a real trajectory source need not share with the reference camera (KITTI's OXTS trajectory is turned 0.67 /
 0.45° from image_00). Here, per reference frame, SIFT matches between the reference camera and another registered camera
-that sees the same instant are triangulated in the reference camera's frame (``camera_map.triangulate``); each point must
+that sees the same instant are triangulated from their two poses (``camera_map.triangulate``); each point must
 lie on the surface of the LiDAR's scan of that instant, placed by eq. 1-2: point-to-plane residuals, each weighted by
 its noise (the plane's and the stereo depth's along the plane's normal), Huber, fitted in the LiDAR's rotation and lever
 arm (its time offset held: on a straight drive it trades with the along-track lever arm) and one depth scale per camera
