@@ -143,15 +143,16 @@ def instant_points(rig: Rig, traj: ReferenceTrajectory, calibration: Calibration
 def _rows(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, sets: Sequence[InstantPoints], scales: np.ndarray, radius: float):
     """Point-to-plane correspondences: each triangulated point's nearest planar LiDAR point of the scan at its instant
     within ``radius`` (world frame). Returns (LiDAR point index, world normal, origin, ray, pair, weight, set)."""
-    rows = []
+    rows, indices = [], {}
     for s, pts in enumerate(sets):
         k = int(np.argmin(np.abs(scans.stamps + ext.time_offset - pts.time)))
         if abs(scans.stamps[k] + ext.time_offset - pts.time) > SAME_INSTANT or not len(pts.ray):
             continue
         part = scans.scan(k)
-        index = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(place_points(traj, ext, scans.points[part], scans.times[part])))
-        index.knn_index()
-        found, dist2 = index.knn_search(o3d.core.Tensor(pts.origin + scales[pts.pair] * pts.ray), 1)
+        if k not in indices:  # each scan placed and indexed once, whichever camera pairs see its instant
+            indices[k] = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(place_points(traj, ext, scans.points[part], scans.times[part])))
+            indices[k].knn_index()
+        found, dist2 = indices[k].knn_search(o3d.core.Tensor(pts.origin + scales[pts.pair] * pts.ray), 1)
         g = found.numpy()[:, 0].astype(np.int64) + part.start
         keep = (dist2.numpy()[:, 0] < radius**2) & scans.planar[g]
         world_R_ref = traj.pose_and_rates(np.array([pts.time]))[0][0]  # the scan's turn over its sweep is neglected here
