@@ -253,7 +253,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
     rig = pipeline.model.camera_optimizer.rig
     dataset_prior = prior_calibration(rig.data)
     measured = nerf_uncertainties(pipeline, seed) if seed is not None else {}
-    final = Calibration(estimate.reference_sensor, dict(estimate.T_ref_sensor), dict(estimate.time_offset), {})
+    final = Calibration(estimate.reference_sensor, dict(estimate.T_ref_sensor), dict(estimate.time_offset), {}, estimate.trajectory_T_reference)
     drive_weak = {r.sensor: r.weak for r in drive}
     record, lines = {}, []
     lidars = {n: stage_sigma(e) for n, e in (stage or {"sensors": {}})["sensors"].items() if "observability" in e}

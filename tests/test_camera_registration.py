@@ -12,7 +12,9 @@ from moisst_ns.datasets.synth import SynthConfig, make_rig
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, map_source, register_cameras
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, register_cameras
+from moisst_ns.stages.camera.camera_map import feature_map
+from moisst_ns.stages.camera.lidar_map import map_source
 from moisst_ns.stages.camera.photometric import CameraModel
 from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, PinholeModel, project, pyramid_factors, visible
 
@@ -176,6 +178,44 @@ def test_a_lidar_the_first_stage_left_undetermined_does_not_make_the_cameras_map
     np.testing.assert_array_equal(results[0].calibration.T_ref_sensor["cam_front_right"], results[1].calibration.T_ref_sensor["cam_front_right"])
     assert results[0].calibration.time_offset["cam_front_right"] == results[1].calibration.time_offset["cam_front_right"]
     assert not np.array_equal(results[0].calibration.T_ref_sensor["cam_front_right"], at_truth.T_ref_sensor["cam_front_right"])  # it moved
+
+
+def test_a_trajectory_turned_from_the_reference_camera_is_carried_back_before_the_cameras_are_registered_again(rig_folder, monkeypatch):
+    """When the LiDARs' placement says the trajectory is turned from the reference camera (``trajectory_turn``, given
+    here), the cameras are registered again on the trajectory carried by that turn: on the rig with its trajectory given
+    0.4 / 0.3 deg off the reference camera, the camera ends where it ends on the exact trajectory (to 1e-6) and the turn
+    is recorded; where the reference camera's features do not triangulate on the carried trajectory, the first
+    registration stands, no turn recorded."""
+    from scipy.spatial.transform import Rotation
+
+    from moisst_ns.stages.camera import camera_registration
+
+    rig, truth, start = lidar_at_truth(rig_folder)
+    config, undetermined = CameraRegistrationConfig(), {"lidar": ["z"]}
+    exact = register_cameras(rig, start, config, sensors=["cam_front_right"], log=lambda s: None, lidar_undetermined=undetermined)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(np.deg2rad([0.4, 0.3, 0.0])).as_matrix()
+    monkeypatch.setattr(camera_registration, "place_lidars", lambda *args: {"lidar": None})  # the first pass only
+    monkeypatch.setattr(camera_registration, "trajectory_turn", lambda lidars, log: turn if lidars else None)
+    given = replace(rig)
+    given.carry_trajectory(turn.T)  # the trajectory of a frame turned from the reference camera by the turn's inverse
+    result = register_cameras(given, start, config, sensors=["cam_front_right"], log=lambda s: None, lidar_undetermined=undetermined, lidar_sigma={})
+    assert result.calibration.trajectory_T_reference is turn
+    np.testing.assert_allclose(result.calibration.T_ref_sensor["cam_front_right"], exact.calibration.T_ref_sensor["cam_front_right"], atol=1e-6)
+    assert result.calibration.time_offset["cam_front_right"] == pytest.approx(exact.calibration.time_offset["cam_front_right"], abs=1e-6)
+    built = []
+
+    def first_only(*args):  # the carried trajectory's features do not triangulate
+        built.append(1)
+        if len(built) > 1:
+            raise NoMapError("rig.json: frames: fewer than 50 feature points of cam_front triangulate")
+        return feature_map(*args)
+
+    monkeypatch.setattr(camera_registration, "feature_map", first_only)
+    lines = []
+    result = register_cameras(rig, start, config, sensors=["cam_front_right"], log=lines.append, lidar_undetermined=undetermined, lidar_sigma={})
+    assert "as first registered" in lines[-1] and "triangulate" in lines[-1] and result.calibration.trajectory_T_reference is None
+    np.testing.assert_array_equal(result.calibration.T_ref_sensor["cam_front_right"], exact.calibration.T_ref_sensor["cam_front_right"])
 
 
 def test_bad_input_one_line_errors(rig_folder, tmp_path):

@@ -678,6 +678,35 @@ def test_load_calibration_good(dataset, tmp_path):
     assert prior.reference_sensor == REF and np.array_equal(prior.T_ref_sensor[CAM], rig.sensors[CAM].T_ref_sensor)
 
 
+def test_a_trajectory_carried_to_the_reference_sensor(dataset, tmp_path):
+    """``trajectory_T_reference`` survives calibration.json, and the dataparser's ``apply_prior_calibration`` carries the
+    rig's trajectory by it: every pose becomes ``trajectory(t) @ T``, exactly; a non-rigid one is refused by field."""
+    from scipy.spatial.transform import Rotation
+
+    from moisst_ns.data.dataparser import apply_prior_calibration
+
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_rotvec([0.01, -0.02, 0.005]).as_matrix(), [0.1, 0.0, -0.2]
+    cal = load_calibration(dataset / "ground_truth.json")
+    cal.trajectory_T_reference = T
+    cal.write(tmp_path / "calibration.json")
+    again = load_calibration(tmp_path / "calibration.json")
+    np.testing.assert_array_equal(again.trajectory_T_reference, T)
+    assert load_calibration(dataset / "ground_truth.json").trajectory_T_reference is None
+    rig, before = load_rig(dataset), load_rig(dataset)
+    apply_prior_calibration(rig, again, tmp_path / "calibration.json")
+    for i in range(len(rig.trajectory_stamps)):
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = Rotation.from_quat(before.trajectory_quats_xyzw[i]).as_matrix(), before.trajectory_positions[i]
+        carried = pose @ T
+        np.testing.assert_allclose(Rotation.from_quat(rig.trajectory_quats_xyzw[i]).as_matrix(), carried[:3, :3], atol=1e-12)
+        np.testing.assert_allclose(rig.trajectory_positions[i], carried[:3, 3], atol=1e-12)
+    raw = json.loads((tmp_path / "calibration.json").read_text())
+    raw["trajectory_T_reference"][0][0] = 2.0
+    (tmp_path / "calibration.json").write_text(json.dumps(raw))
+    expect_error(lambda: load_calibration(tmp_path / "calibration.json"), tmp_path / "calibration.json", "trajectory_T_reference", "not orthonormal")
+
+
 def test_load_calibration_non_rigid(rig_dir):
     def edit(raw):
         m = np.array(raw["sensors"][CAM]["T_ref_sensor"])

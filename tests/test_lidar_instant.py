@@ -5,12 +5,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from moisst_ns.datasets.kitti_raw import KittiRawConfig, convert
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.lidar.lidar_instant import place_lidar, place_lidars
+from moisst_ns.stages.lidar.lidar_instant import place_lidar, place_lidars, trajectory_turn
 from moisst_ns.stages.lidar.lidar_report import stage_sigma
 from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
 
@@ -75,6 +76,28 @@ def test_a_motion_estimate_many_sigma_away_hands_over_every_placed_parameter(dri
     assert out["velodyne"].taken == out["velodyne"].placed and {"pitch", "yaw"} <= set(out["velodyne"].taken)
     error = np.abs(parameter_difference(truth.T_ref_sensor["velodyne"], 0.0, calibration.T_ref_sensor["velodyne"], 0.0))
     assert np.all(np.rad2deg(error[3:6]) < 0.3), np.rad2deg(error[3:6])
+
+
+@needs_data
+def test_a_motion_estimate_in_a_turned_frame_gives_the_trajectorys_turn(drive):
+    """A motion estimate made in a trajectory frame turned by W from image_00 (``R_motion = W R_factory``; W 1.0 and
+    -0.8 deg about image_00's x and y) with a tight motion sigma on pitch and yaw: the placement recovers W about the
+    axes both determine within 0.3 deg (the placement's own error), nothing about the LiDAR's roll axis, which the motion
+    left undetermined; ``trajectory_turn`` returns it as a rotation."""
+    rig, truth, start, scans = drive
+    turn = np.deg2rad([1.0, -0.8, 0.0])
+    motion = np.array(truth.T_ref_sensor["velodyne"], dtype=np.float64)
+    motion[:3, :3] = Rotation.from_rotvec(turn).as_matrix() @ motion[:3, :3]
+    motion[:3, 3] = start.T_ref_sensor["velodyne"][:3, 3]
+    calibration = Calibration(start.reference_sensor, {**start.T_ref_sensor, "velodyne": motion}, dict(start.time_offset))
+    tight = [0.001] * 3 + [np.deg2rad(0.01)] * 3 + [0.001]
+    out = place_lidars(rig, calibration, ["image_01", "image_03"], {"velodyne": ["x", "y", "z", "roll"]}, {"velodyne": tight}, log=lambda line: None)
+    found = np.array(out["velodyne"].turn)
+    assert np.all(np.abs(np.rad2deg(found - turn)) < 0.3), np.rad2deg(found)
+    assert abs(found @ motion[:3, 0]) < 1e-9  # nothing about the LiDAR's x (its roll axis), radians
+    T = trajectory_turn(out, log=lambda line: None)
+    np.testing.assert_allclose(T[:3, :3], Rotation.from_rotvec(found).as_matrix(), atol=1e-12)
+    assert trajectory_turn({}, log=lambda line: None) is None
 
 
 def test_a_parameter_placed_at_the_shared_instants_carries_their_sigma_and_the_time_offsets_along_the_drive():

@@ -43,7 +43,8 @@ class MoisstRigDataParserConfig(DataParserConfig):
 
 
 def apply_prior_calibration(rig, calibration, file: Path) -> None:
-    """Replace the priors of ``rig`` (in memory) by those of ``calibration`` for every sensor it names."""
+    """Replace the priors of ``rig`` (in memory) by those of ``calibration`` for every sensor it names, and carry its
+    trajectory to the reference sensor's frame when ``calibration`` says the two differ (``trajectory_T_reference``)."""
     if calibration.reference_sensor != rig.reference_sensor:
         raise RigFormatError(file, "reference_sensor", f"{calibration.reference_sensor!r} is not the rig's reference sensor {rig.reference_sensor!r}")
     for name, pose in calibration.T_ref_sensor.items():
@@ -52,6 +53,8 @@ def apply_prior_calibration(rig, calibration, file: Path) -> None:
         if name != rig.reference_sensor:
             rig.sensors[name].T_ref_sensor = np.asarray(pose, dtype=np.float64)
             rig.sensors[name].time_offset = float(calibration.time_offset[name])
+    if calibration.trajectory_T_reference is not None:
+        rig.carry_trajectory(calibration.trajectory_T_reference)
 
 
 @dataclass
@@ -70,10 +73,10 @@ class MoisstRigDataParser(DataParser):
     def rig_outputs(self, root: Path, split: str) -> DataparserOutputs:
         """Dataparser outputs of the ``moisst-rig/1`` dataset in ``root``."""
         rig = load_rig(root)
-        dataset_priors = None
+        dataset_priors, prior = None, None
         if self.config.prior_calibration is not None:
-            dataset_priors = Calibration.from_rig(rig)
-            apply_prior_calibration(rig, load_calibration(self.config.prior_calibration), self.config.prior_calibration)
+            dataset_priors, prior = Calibration.from_rig(rig), load_calibration(self.config.prior_calibration)
+            apply_prior_calibration(rig, prior, self.config.prior_calibration)
         gt_file = rig.root / "ground_truth.json"  # for error metrics only (never optimised)
         truth = load_calibration(gt_file) if gt_file.is_file() else None
         if truth is not None:
@@ -82,6 +85,7 @@ class MoisstRigDataParser(DataParser):
                 raise RigFormatError(gt_file, "sensors", f"must name the rig's reference sensor and every sensor (missing: {missing})")
         data = RigData.from_rig(rig, truth)
         data.dataset_priors = dataset_priors
+        data.trajectory_T_reference = None if prior is None else prior.trajectory_T_reference
 
         # Normalisation: world_model = scale * (world - center); no rotation, so extrinsics keep their axes.
         world = WorldFrame.fit(rig.trajectory_positions, TRAJECTORY_EXTENT)

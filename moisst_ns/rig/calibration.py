@@ -58,6 +58,9 @@ class RigData:
     dataset_priors: Optional[Calibration] = None
     """rig.json's priors when the run started from others (``dataparser.prior_calibration``: the LiDAR-first
     stage's estimate); None when ``prior_extrinsics`` are rig.json's."""
+    trajectory_T_reference: Optional[np.ndarray] = None
+    """The reference sensor's pose in the frame rig.json's trajectory is given in, when the stages found them to differ
+    (``Calibration.trajectory_T_reference``); the trajectory arrays here are already carried to the reference sensor."""
     rig: Optional[Rig] = None
     """The loaded dataset (frames and files: the datamanager reads the LiDAR scans from it, not rig.json again)."""
     world: Optional[WorldFrame] = None
@@ -185,7 +188,8 @@ class RigCalibration(nn.Module):
         ext = self.extrinsics().cpu().numpy()
         off = self.time_offsets().cpu().numpy()
         names = self.data.sensor_names
-        return Calibration(names[self.data.reference_index], {n: ext[i] for i, n in enumerate(names)}, {n: float(off[i]) for i, n in enumerate(names)})
+        return Calibration(names[self.data.reference_index], {n: ext[i] for i, n in enumerate(names)}, {n: float(off[i]) for i, n in enumerate(names)},
+                           trajectory_T_reference=self.data.trajectory_T_reference)
 
     @torch.no_grad()
     def errors(self) -> Optional[Dict[str, Dict[str, float]]]:

@@ -80,6 +80,16 @@ class Rig:
     def frames_of(self, sensor: str) -> List[FrameSpec]:
         return [f for f in self.frames if f.sensor == sensor]
 
+    def carry_trajectory(self, trajectory_T_reference: np.ndarray) -> None:
+        """Carry the trajectory (in memory) from the frame it is given in to the reference sensor's:
+        ``world_T_ref(t) = trajectory(t) @ trajectory_T_reference`` (``Calibration.trajectory_T_reference``)."""
+        from scipy.spatial.transform import Rotation
+
+        T = np.asarray(trajectory_T_reference, dtype=np.float64)
+        turn = Rotation.from_quat(self.trajectory_quats_xyzw)
+        self.trajectory_positions = self.trajectory_positions + turn.apply(T[:3, 3])
+        self.trajectory_quats_xyzw = (turn * Rotation.from_matrix(T[:3, :3])).as_quat()
+
 
 def _is_rigid(matrix: np.ndarray, tol: float = 1e-4) -> Optional[str]:
     if matrix.shape != (4, 4):
@@ -332,10 +342,16 @@ class Calibration:
     time_offset: Dict[str, float]
     trust: Dict[str, SensorTrust] = field(default_factory=dict)
     """Optional per-sensor uncertainty and verdict (``moisst_ns.rig.trust``); absent in older files."""
+    trajectory_T_reference: Optional[np.ndarray] = None
+    """The reference sensor's pose (4x4, metres) in the frame the rig's trajectory is given in, when a stage found
+    them to differ (``stages.lidar.lidar_instant.trajectory_turn``): ``world_T_ref(t) = trajectory(t) @ this``, and
+    every ``T_ref_sensor`` is relative to the reference sensor itself. None (absent in the file): the identity."""
 
     def to_json(self) -> dict:
+        turn = {} if self.trajectory_T_reference is None else {"trajectory_T_reference": np.asarray(self.trajectory_T_reference).tolist()}
         return {
             "reference_sensor": self.reference_sensor,
+            **turn,
             "sensors": {
                 n: {"T_ref_sensor": np.asarray(self.T_ref_sensor[n]).tolist(), "time_offset": float(self.time_offset[n]),
                     **(self.trust[n].to_json() if n in self.trust else {})}
@@ -378,4 +394,5 @@ def load_calibration(path: Path | str) -> Calibration:
             raise RigFormatError(file, f"sensors.{name}.{err.field}", err.problem) from None
         if found is not None:
             trust[name] = found
-    return Calibration(raw["reference_sensor"], transforms, offsets, trust)
+    turn = parse_rigid(raw["trajectory_T_reference"], file, "trajectory_T_reference") if "trajectory_T_reference" in raw else None
+    return Calibration(raw["reference_sensor"], transforms, offsets, trust, turn)

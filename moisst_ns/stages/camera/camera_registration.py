@@ -22,11 +22,11 @@ from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
 from moisst_ns.stages.camera.camera_map import FeatureMapConfig, feature_map
 from moisst_ns.stages.camera.feature_start import FeatureStart, FeatureStartConfig, feature_start
-from moisst_ns.stages.camera.lidar_map import CameraStageError, NoOverlapError, lidar_map, pyramid_factors
+from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, NoOverlapError, lidar_map, map_source, pyramid_factors
 from moisst_ns.stages.camera.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, convergence_tail, held_back_check, points_per_frame, reference_cost,
                                             resolution_spread, solve, split_half_spread, typical_error_significance)
 from moisst_ns.stages.camera.photometric import CameraFrames, PairSet, Registration, robust_cost
-from moisst_ns.stages.lidar.lidar_instant import InstantPlacement, place_lidars
+from moisst_ns.stages.lidar.lidar_instant import InstantPlacement, place_lidars, trajectory_turn
 from moisst_ns.stages.trust.observability import huber_weights
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
@@ -285,29 +285,6 @@ def _prior_kept(name: str, calibration: Calibration, why: str, rig: Optional[Rig
                         readout_prior=readout, readout_time=readout)
 
 
-def map_source(rig: Rig, lidar_undetermined: Optional[Dict[str, Sequence[str]]] = None) -> Tuple[str, str]:
-    """What the cameras are registered against, and why when it is not the LiDAR on a rig with one.
-
-    The LiDAR map places its points with the LiDAR-first estimate, so a LiDAR parameter that stage left undetermined
-    (``LidarResult.undetermined``: held at its prior, or a split-half sigma above a typical prior error) moves the whole
-    map by about its prior error, and every camera registered against it inherits that error under a sigma that cannot
-    see it (KITTI raw 0048: the Velodyne's along-track lever arm held 50 cm off; image_03 then 27 cm off). The
-    reference camera's features, triangulated from its known poses, carry only the trajectory's error: the map where a
-    LiDAR is undetermined and the reference sensor is a camera (docs/method.md, "The cameras' map").
-
-    Returns:
-        ``("lidar", "")``, or ``("features", why)`` (``why`` empty on a rig without a LiDAR).
-    """
-    lidars = [n for n, s in rig.sensors.items() if s.type == "lidar"]
-    if not lidars:
-        return "features", ""
-    unknown = {n: list(w) for n, w in (lidar_undetermined or {}).items() if n in lidars and w}
-    if not unknown or rig.sensors[rig.reference_sensor].type != "camera":
-        return "lidar", ""
-    return "features", ("the LiDAR-first stage left " + "; ".join(f"{n}'s {', '.join(w)}" for n, w in unknown.items())
-                        + " undetermined, which a LiDAR map would pass on to every camera")
-
-
 def camera_sensors(rig: Rig) -> List[str]:
     """The rig's non-reference cameras (the ones this stage registers)."""
     return [n for n, s in rig.sensors.items() if s.type == "camera" and n != rig.reference_sensor]
@@ -328,7 +305,9 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         sensors: the cameras to register (default: every non-reference camera).
         log: where progress lines go.
         lidar_undetermined: per LiDAR, the parameters the LiDAR-first stage left undetermined (None: all determined).
-        lidar_sigma: per LiDAR, that stage's sigma (``PARAMETERS`` order); both feed ``place_lidars``.
+        lidar_sigma: per LiDAR, that stage's sigma (``PARAMETERS`` order); both feed ``place_lidars`` (None: no LiDAR is
+            placed). When the placements say the trajectory is turned (``trajectory_turn``), the cameras are registered
+            again on it carried to the reference camera (``trajectory_T_reference``).
 
     Returns:
         The result; ``calibration`` holds the registered cameras (or their priors where kept).
@@ -395,6 +374,20 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
                                         note=f"{r.note}; {why}" if r.kept_prior and r.note else why)
             log(f"[camera-registration] {name}: {why}; it keeps its prior")
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
-    lidars = (place_lidars(rig, out, [n for n in cameras if not results[n].kept_prior], lidar_undetermined or {}, lidar_sigma or {}, log)
-              if why_source and config.estimate_extrinsic else {})  # an extrinsic the user holds stays
-    return CameraStageResult(out, {n: results[n] for n in cameras}, len(world), source, why_source, lidars)
+    lidars = (place_lidars(rig, out, [n for n in cameras if not results[n].kept_prior], lidar_undetermined or {}, lidar_sigma, log)
+              if why_source and config.estimate_extrinsic and lidar_sigma is not None else {})  # an extrinsic the user holds stays
+    result = CameraStageResult(out, {n: results[n] for n in cameras}, len(world), source, why_source, lidars)
+    turn = trajectory_turn(lidars, log)
+    if turn is None:
+        return result
+    # the trajectory is not given in the reference camera's frame: the cameras again on it carried there, the LiDARs
+    # held where the shared instants put them (not placed again: the motion's estimate was of the other frame)
+    carried, start = replace(rig), replace(calibration, T_ref_sensor={**calibration.T_ref_sensor, **{n: out.T_ref_sensor[n] for n in lidars}})
+    carried.carry_trajectory(turn)
+    try:
+        again = register_cameras(carried, start, config, sensors, log, lidar_undetermined)
+    except NoMapError as err:  # its features no longer triangulate
+        log(f"[camera-registration] on the carried trajectory: {err}: the trajectory and the cameras as first registered")
+        return result
+    again.calibration.trajectory_T_reference = turn
+    return replace(again, lidars=lidars)

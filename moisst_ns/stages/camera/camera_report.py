@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
@@ -62,8 +63,14 @@ def write_stage_outputs(result: CameraStageResult, config: CameraRegistrationCon
     """Write ``calibration.json``, ``camera_registration.json`` and ``camera_registration.md`` into ``out``."""
     summary = stage_summary(result, config, start, truth)
     what = "LiDAR map points" if result.map_source == "lidar" else "triangulated features of the reference camera"
+    turn = result.calibration.trajectory_T_reference
+    turned = [] if turn is None else [
+        f"The trajectory is turned {np.degrees(Rotation.from_matrix(turn[:3, :3]).as_rotvec()).round(3).tolist()} deg (rotation vector) from the "
+        "reference camera (the LiDARs' motion against their shared instants): the cameras were registered on it carried to the reference camera "
+        "(`trajectory_T_reference` in calibration.json).", ""]
     md = [f"# Camera registration against the {'LiDAR map' if result.map_source == 'lidar' else 'reference camera features'}", "",
           *([f"The map is the reference camera's features: {result.map_note}.", ""] if result.map_note else []),
+          *turned,
           f"Photometric consistency of {result.map_points} {what} between each camera's frames and the reference "
           "camera's (module `moisst_ns.stages.camera.camera_registration`). Held-back cost: mean Huber cost of fresh pairs at the "
           "estimate vs at the prior; a camera whose estimate is not better keeps its prior.", ""]

@@ -9,7 +9,7 @@ centre of pixel column ``i`` at ``i + 0.5``; a pyramid level ``l`` (``2^l`` time
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import open3d as o3d
@@ -237,3 +237,26 @@ def bilinear(stack: ImageStack, frame: Int[np.ndarray, "num"], uv: Float[np.ndar
         value += wgt * stack.intensity[frame, y0 + dy, x0 + dx]
         grad += wgt[:, None] * stack.gradient[frame, :, y0 + dy, x0 + dx]
     return np.where(ok, value, 0.0), np.where(ok[:, None], grad, 0.0), ok
+
+
+def map_source(rig: Rig, lidar_undetermined: Optional[Dict[str, Sequence[str]]] = None) -> Tuple[str, str]:
+    """What the cameras are registered against, and why when it is not the LiDAR on a rig with one.
+
+    The LiDAR map places its points with the LiDAR-first estimate, so a LiDAR parameter that stage left undetermined
+    (``LidarResult.undetermined``: held at its prior, or a split-half sigma above a typical prior error) moves the whole
+    map by about its prior error, and every camera registered against it inherits that error under a sigma that cannot
+    see it (KITTI raw 0048: the Velodyne's along-track lever arm held 50 cm off; image_03 then 27 cm off). The
+    reference camera's features, triangulated from its known poses, carry only the trajectory's error: the map where a
+    LiDAR is undetermined and the reference sensor is a camera (docs/method.md, "The cameras' map").
+
+    Returns:
+        ``("lidar", "")``, or ``("features", why)`` (``why`` empty on a rig without a LiDAR).
+    """
+    lidars = [n for n, s in rig.sensors.items() if s.type == "lidar"]
+    if not lidars:
+        return "features", ""
+    unknown = {n: list(w) for n, w in (lidar_undetermined or {}).items() if n in lidars and w}
+    if not unknown or rig.sensors[rig.reference_sensor].type != "camera":
+        return "lidar", ""
+    return "features", ("the LiDAR-first stage left " + "; ".join(f"{n}'s {', '.join(w)}" for n, w in unknown.items())
+                        + " undetermined, which a LiDAR map would pass on to every camera")

@@ -17,12 +17,13 @@ prior error. No nerfstudio import.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Callable, Dict, List, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import open3d as o3d
 import torch
 from jaxtyping import Float
+from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
@@ -88,11 +89,16 @@ class InstantPlacement:
     ``-along_track * e`` (the time offset is held)."""
     taken: List[str] = field(default_factory=list)
     """The parameters the LiDAR's calibration took from here (``place_lidars``)."""
+    turn: List[float] = field(default_factory=list)
+    """When the motion's estimate lies in another frame (``place_lidars``): the rotation vector (rad, about the
+    reference sensor's axes) that carries the trajectory's frame to the reference sensor's, about the LiDAR's axes where
+    the motion's and the shared instants' rotations differ by more than their combined sigma (``trajectory_turn``);
+    else empty."""
 
     def to_json(self) -> dict:
         return {"T_ref_sensor": self.estimate.matrix().tolist(), "sigma": [None if not np.isfinite(s) else float(s) for s in self.sigma],
                 "placed": self.placed, "rows": self.rows, "cameras": self.cameras, "scales": self.scales, "along_track": self.along_track,
-                "taken": self.taken}
+                "taken": self.taken, **({"turn_rotvec": self.turn} if self.turn else {})}
 
 
 def instant_points(rig: Rig, traj: ReferenceTrajectory, calibration: Calibration, camera: str, pair: int, features: int = 4000,
@@ -250,7 +256,8 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
     less precisely (``motion_sigma``, ``PARAMETERS`` order), and every one placed here when one of them lies more than 3
     combined sigma from the motion's: the motion calibrates a LiDAR in the frame the trajectory is given in, the shared
     instant in the reference camera's, which defines the rig's, and such a difference says the two frames differ (KITTI
-    raw 0048: the OXTS trajectory turned 0.67 / 0.45 deg from image_00). Changes ``calibration`` in place.
+    raw 0048: the OXTS trajectory turned 0.67 / 0.45 deg from image_00); the placement then records that turn
+    (``InstantPlacement.turn``), which the camera stage carries the trajectory by. Changes ``calibration`` in place.
 
     Args:
         rig: the dataset (its reference sensor a camera).
@@ -288,6 +295,10 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
             elif p in apart and (other_frame or found.sigma[i] < motion[i]):
                 why[p] = f"sigma {found.sigma[i] * unit:.3g} against the motion's {motion[i] * unit:.3g}, {apart[p]:.1f} sigma apart"
         found.taken = list(why)
+        if other_frame:  # R_motion = turn @ R_placed, about each axis where the difference exceeds its sigma (applied, its
+            # expected squared error, sigma^2, is then below the difference's, which leaving it makes)
+            both = np.array([apart.get(p, 0.0) > 1 for p in PARAMETERS[3:6]], dtype=np.float64)
+            found.turn = [float(v) for v in -T[:3, :3] @ (moved[3:6] * both)]
         increment = np.zeros(7)
         for p in found.taken:
             i = PARAMETERS.index(p)
@@ -297,3 +308,24 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
         log(f"[camera-registration] {lidar}: takes from the shared instants {'; '.join(f'{p} ({w})' for p, w in why.items()) or 'nothing'} (cm, deg)")
         out[lidar] = found
     return out
+
+
+def trajectory_turn(placements: Dict[str, InstantPlacement], log: Callable[[str], None] = print) -> Optional[np.ndarray]:
+    """The reference sensor's pose in the frame the trajectory is given in, from the LiDARs whose motion and shared
+    instants disagree (``InstantPlacement.turn``; their mean), or None when none does.
+
+    Args:
+        placements: ``place_lidars``' result.
+        log: where the turn is reported.
+
+    Returns:
+        ``trajectory_T_reference``, 4x4 (a rotation), or None.
+    """
+    turns = [p.turn for p in placements.values() if p.turn]
+    if not turns:
+        return None
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.mean(turns, axis=0)).as_matrix()
+    log(f"[camera-registration] the trajectory is turned {np.degrees(np.mean(turns, axis=0)).round(3).tolist()} deg (rotation vector) from the "
+        f"reference sensor by {', '.join(n for n, p in placements.items() if p.turn)}'s motion against its shared instants: the cameras again on it carried there")
+    return T
