@@ -242,7 +242,7 @@ def run_camera_registration(rig, lidar_stage: Optional[dict], truth, out: Path, 
     config = CameraRegistrationConfig(**options)
     try:
         lidars = (lidar_stage or {}).get("sensors", {})
-        result = register_cameras(rig, start, config, lidar_undetermined={n: e.get("undetermined", []) for n, e in lidars.items()},
+        result = register_cameras(rig, start, config, lidar_undetermined={n: e.get("motion_undetermined", e.get("undetermined", [])) for n, e in lidars.items()},
                                   lidar_sigma={n: stage_sigma(e)[0] for n, e in lidars.items()})
     except NoMapError as err:
         print(f"camera registration skipped: {err}; the NeRF calibrates the cameras")

@@ -52,7 +52,7 @@ def run(folder: Path, config: CameraRegistrationConfig, lidar_map: bool = False)
     calibration = lidar.calibration if lidar else Calibration.from_rig(rig)
     lidar_s = time.perf_counter() - start
     entries = stage_summary(lidar, LidarFirstConfig(), calibration, None)["sensors"] if lidar else {}
-    result = register_cameras(rig, calibration, config, lidar_undetermined=None if lidar is None or lidar_map else {n: r.undetermined() for n, r in lidar.lidars.items()},
+    result = register_cameras(rig, calibration, config, lidar_undetermined=None if lidar is None or lidar_map else {n: r.motion_undetermined() for n, r in lidar.lidars.items()},
                               lidar_sigma={n: stage_sigma(e)[0] for n, e in entries.items()})
     print(f"{folder}: map from the {result.map_source}{': ' + result.map_note if result.map_note else ''}")
     print(f"{folder}: LiDAR first {lidar_s:.1f} s, cameras {time.perf_counter() - start - lidar_s:.1f} s")

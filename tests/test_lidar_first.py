@@ -441,9 +441,9 @@ def test_a_straight_drive_keeps_at_the_prior_what_it_does_not_determine(tmp_path
     assert all(after[k] <= prior[k] + 1e-3 for k in ("translation_cm", "rotation_deg", "time_ms")), (after, prior)
 
 def test_undetermined_is_what_was_held_and_not_placed_or_has_a_spread_over_a_typical_error():
-    """``LidarResult.undetermined`` (what the camera stage's ``map_source`` reads): held at the prior because the halves
-    disagree and not placed by the shared view, or a split-half / placed sigma above a typical prior error (10 cm,
-    1 deg, 10 ms); a parameter the user holds is not undetermined; exact lists."""
+    """``LidarResult.undetermined``: held at the prior because the halves disagree and not placed by the shared view,
+    or a split-half / placed sigma above a typical prior error (10 cm, 1 deg, 10 ms); ``motion_undetermined`` (what the
+    camera stage's ``map_source`` reads) counts the placed ones too; a parameter the user holds is neither; exact lists."""
     from moisst_ns.stages.lidar.lidar_first import LidarResult
 
     def result(held, split, accepted, by_user=()):
@@ -452,6 +452,8 @@ def test_undetermined_is_what_was_held_and_not_placed_or_has_a_spread_over_a_typ
 
     split = [0.19, 0.03, 0.0, 0.014, 0.002, 0.001, 0.006]  # KITTI raw 0048's: x 19 cm apart, the roll placed
     assert result(["x", "z", "roll"], split, [0]).undetermined() == ["x", "z"]  # roll is Jacobian column 0
+    assert result(["x", "z", "roll"], split, [0]).motion_undetermined() == ["x", "z", "roll"]  # placed by the view, not the motion
+    assert result(["y", "roll"], [0.0, 0.12, 0.0, 0.0, 0.0, 0.0, 0.0], [0, 4]).undetermined() == ["y"]  # placed, sigma over 10 cm
     assert result(["x", "z", "roll"], split, []).undetermined() == ["x", "z", "roll"]
     assert result([], [0.05, 0.12, 0.0, 0.0, 0.0, 0.02, 0.011], []).undetermined() == ["y", "yaw", "time_offset"]
     assert result(["z"], split, [], by_user=["x", "y", "roll", "pitch", "yaw"]).undetermined() == ["x", "z"]  # x by its spread

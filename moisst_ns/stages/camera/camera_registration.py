@@ -2,8 +2,8 @@
 over LiDAR-measured, metric geometry (no NeRF): grey levels of map points in a camera's frames against the reference
 camera's and its own frames some metres away, robust (Huber) least squares on the 7 corrections of eq. 12, coarse to
 fine over an image pyramid, occlusions by a z-buffer, rolling-shutter rows included (``photometric``), each fit
-guarded before it replaces the prior (``camera_guards``); then a LiDAR the LiDAR-first stage left undetermined against
-the cameras at the same instants (``lidar_instant``). docs/method.md, "Cameras against the map" and "Guards", has the
+guarded before it replaces the prior (``camera_guards``); then a LiDAR whose scans' motion left parameters undetermined
+against the cameras at the same instants (``lidar_instant``). docs/method.md, "Cameras against the map" and "Guards", has the
 formulation and the measurements. Nothing here imports nerfstudio.
 """
 
@@ -304,7 +304,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         config: settings.
         sensors: the cameras to register (default: every non-reference camera).
         log: where progress lines go.
-        lidar_undetermined: per LiDAR, the parameters the LiDAR-first stage left undetermined (None: all determined).
+        lidar_undetermined: per LiDAR, the parameters its scans' motion did not determine in the LiDAR-first stage,
+            placed by its depth edges' view or not (``LidarResult.motion_undetermined``; None: all determined).
         lidar_sigma: per LiDAR, that stage's sigma (``PARAMETERS`` order); both feed ``place_lidars`` (None: no LiDAR is
             placed). When the placements say the trajectory is turned (``trajectory_turn``), the cameras are registered
             again on it carried to the reference camera (``trajectory_T_reference``).

@@ -242,10 +242,13 @@ def bilinear(stack: ImageStack, frame: Int[np.ndarray, "num"], uv: Float[np.ndar
 def map_source(rig: Rig, lidar_undetermined: Optional[Dict[str, Sequence[str]]] = None) -> Tuple[str, str]:
     """What the cameras are registered against, and why when it is not the LiDAR on a rig with one.
 
-    The LiDAR map places its points with the LiDAR-first estimate, so a LiDAR parameter that stage left undetermined
-    (``LidarResult.undetermined``: held at its prior, or a split-half sigma above a typical prior error) moves the whole
-    map by about its prior error, and every camera registered against it inherits that error under a sigma that cannot
-    see it (KITTI raw 0048: the Velodyne's along-track lever arm held 50 cm off; image_03 then 27 cm off). The
+    The LiDAR map places its points with the LiDAR-first estimate, so a LiDAR parameter its scans' motion did not
+    determine (``LidarResult.motion_undetermined``: held at its prior, or a split-half sigma above a typical prior error)
+    moves the whole map by about its prior error, and every camera registered against it inherits that error under a
+    sigma that cannot see it (KITTI raw 0048: the Velodyne's along-track lever arm held 50 cm off; image_03 then 27 cm
+    off). That stage's depth edges' view may place such a parameter, but only the cameras registered without the LiDAR
+    can check it at the shared instants (``lidar_instant.place_lidars``; the view placed KITTI's Velodyne 33 cm off in
+    x under a sigma of 3 cm from the converter's ``--seed 1`` prior, and image_01 ended 4.4 cm off on its map). The
     reference camera's features, triangulated from its known poses, carry only the trajectory's error: the map where a
     LiDAR is undetermined and the reference sensor is a camera (docs/method.md, "The cameras' map").
 
@@ -258,5 +261,5 @@ def map_source(rig: Rig, lidar_undetermined: Optional[Dict[str, Sequence[str]]] 
     unknown = {n: list(w) for n, w in (lidar_undetermined or {}).items() if n in lidars and w}
     if not unknown or rig.sensors[rig.reference_sensor].type != "camera":
         return "lidar", ""
-    return "features", ("the LiDAR-first stage left " + "; ".join(f"{n}'s {', '.join(w)}" for n, w in unknown.items())
+    return "features", ("the LiDAR-first stage's scans' motion left " + "; ".join(f"{n}'s {', '.join(w)}" for n, w in unknown.items())
                         + " undetermined, which a LiDAR map would pass on to every camera")

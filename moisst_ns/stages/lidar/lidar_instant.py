@@ -251,8 +251,10 @@ def place_lidar(rig: Rig, calibration: Calibration, lidar: str, scans: ScanSet, 
 
 def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], undetermined: Dict[str, Sequence[str]],
                  motion_sigma: Dict[str, Sequence[float]], log: Callable[[str], None] = print) -> Dict[str, InstantPlacement]:
-    """Every LiDAR the LiDAR-first stage left partly undetermined, against the registered ``cameras`` at the same instants;
-    ``calibration`` takes, per LiDAR, the parameters placed here that its scans' motion did not determine or determined
+    """Every LiDAR whose scans' motion left parameters undetermined, against the registered ``cameras`` at the same
+    instants; ``calibration`` takes, per LiDAR, the parameters placed here that its scans' motion did not determine (the
+    depth edges' view of the LiDAR-first stage may have placed them: the two cameras' triangulation at one instant
+    replaces that view, which is biased by its edges and, with few of them, can fall in a wrong minimum) or determined
     less precisely (``motion_sigma``, ``PARAMETERS`` order), and every one placed here when one of them lies more than 3
     combined sigma from the motion's: the motion calibrates a LiDAR in the frame the trajectory is given in, the shared
     instant in the reference camera's, which defines the rig's, and such a difference says the two frames differ (KITTI
@@ -263,7 +265,7 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
         rig: the dataset (its reference sensor a camera).
         calibration: the cameras registered, the LiDARs at the LiDAR-first estimate.
         cameras: the cameras registered (not kept at their priors).
-        undetermined: per LiDAR, what the LiDAR-first stage left undetermined (``LidarResult.undetermined``).
+        undetermined: per LiDAR, what its scans' motion did not determine (``LidarResult.motion_undetermined``).
         motion_sigma: per LiDAR, the LiDAR-first stage's sigma (an empty dict: only the undetermined are taken).
         log: where progress lines go.
 
@@ -291,7 +293,7 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
         for i, p in enumerate(PARAMETERS[:6]):
             unit = 100.0 if i < 3 else float(np.rad2deg(1.0))
             if p in found.placed and p in unknown:
-                why[p] = "undetermined"
+                why[p] = "not determined by the motion"
             elif p in apart and (other_frame or found.sigma[i] < motion[i]):
                 why[p] = f"sigma {found.sigma[i] * unit:.3g} against the motion's {motion[i] * unit:.3g}, {apart[p]:.1f} sigma apart"
         found.taken = list(why)

@@ -44,7 +44,7 @@ def stage_summary(result: LidarFirstResult, config: LidarFirstConfig, prior: Cal
             "change_from_prior": _change(r), "scans": r.num_scans, "deskewed": r.deskewed, "dropped_scans": r.dropped,
             "wall_s": r.wall_s, "history": r.history,
             "observability": [asdict(d) for d in r.observability.dofs], "weak": r.observability.weak,
-            "undetermined": r.undetermined(),
+            "undetermined": r.undetermined(), "motion_undetermined": r.motion_undetermined(),
         }
         if r.held_check is not None:
             entry["held_check"] = r.held_check
