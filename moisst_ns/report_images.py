@@ -7,7 +7,6 @@ from typing import Any, List, Mapping, Sequence, Tuple
 import numpy as np
 from jaxtyping import Bool, Float, UInt8
 
-from moisst_ns.rig.distortion import near_image, opencv_distort
 
 
 COLORMAP = "turbo"
@@ -20,42 +19,31 @@ def project_points(
     intrinsics: Mapping[str, Any],
     min_depth: float = 1e-3,
 ) -> Tuple[Float[np.ndarray, "num 2"], Float[np.ndarray, "num"], Bool[np.ndarray, "num"]]:
-    """Project world points into a camera (OpenCV axes: x right, y down, z forward).
-
-    Pixel convention: ``u = fx x' + cx``, ``v = fy y' + cy`` (``x' = x / z`` after OpenCV distortion when any
-    ``k1, k2, k3, k4, p1, p2`` is non-zero), continuous coordinates from the image's top-left corner; the centre
-    of pixel column ``i`` is at ``i + 0.5`` (the rig format's and nerfstudio's convention).
+    """Project world points into a camera (OpenCV axes: x right, y down, z forward) with the stages' projection
+    (``lidar_map.project``: OpenCV distortion when any ``k1, k2, k3, k4, p1, p2`` is non-zero; continuous pixels from
+    the image's top-left corner, the centre of pixel column ``i`` at ``i + 0.5``, as in the rig format and nerfstudio).
 
     Args:
         points_world: points in the world frame, metres.
         world_T_cam: the camera's pose (maps camera coordinates to world coordinates).
-        intrinsics: ``fl_x``, ``fl_y`` (or ``fx``, ``fy``), ``cx``, ``cy``, ``w``, ``h`` and optionally the
-            distortion ``k1, k2, k3, k4, p1, p2`` (nerfstudio's OPENCV model).
+        intrinsics: rig.json's ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h`` and optionally the distortion.
         min_depth: points with camera depth ``z <= min_depth`` are behind (or on) the camera.
 
     Returns:
         (uv pixel coordinates (NaN for points behind the camera), depth ``z`` in the camera frame (metres, negative
         behind), mask of points in front of the camera and inside ``[0, w) x [0, h)``).
     """
-    points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    import torch
+
+    from moisst_ns.stages.camera.lidar_map import PinholeModel, project
+
     pose = np.asarray(world_T_cam, dtype=np.float64)
-    cam = (points - pose[:3, 3]) @ pose[:3, :3]  # R^T (p - t), row by row
-    z = cam[:, 2]
+    cam = (np.asarray(points_world, dtype=np.float64).reshape(-1, 3) - pose[:3, 3]) @ pose[:3, :3]  # R^T (p - t)
+    model = PinholeModel.of(intrinsics)
+    uv, z = (t.numpy() for t in project(model, torch.from_numpy(cam)))
     front = z > min_depth
-    safe_z = np.where(front, z, 1.0)
-    x, y = cam[:, 0] / safe_z, cam[:, 1] / safe_z
-    fx = float(intrinsics["fl_x"] if "fl_x" in intrinsics else intrinsics["fx"])
-    fy = float(intrinsics["fl_y"] if "fl_y" in intrinsics else intrinsics["fy"])
-    cx, cy, w, h = float(intrinsics["cx"]), float(intrinsics["cy"]), float(intrinsics["w"]), float(intrinsics["h"])
-    k1, k2, k3, k4, p1, p2 = (float(intrinsics.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
-    valid = front
-    if any((k1, k2, k3, k4, p1, p2)):
-        valid = valid & near_image(x, y, fx, fy, cx, cy, w, h)  # the polynomial folds back beyond
-        x, y = opencv_distort(x, y, k1, k2, k3, k4, p1, p2)
-    u, v = fx * x + cx, fy * y + cy
-    uv = np.stack([u, v], axis=-1)
     uv[~front] = np.nan
-    mask = valid & np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    mask = front & (uv[:, 0] >= 0) & (uv[:, 0] < model.width) & (uv[:, 1] >= 0) & (uv[:, 1] < model.height)
     return uv, z, mask
 
 

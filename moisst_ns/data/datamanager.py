@@ -299,13 +299,12 @@ def reference_view_mask(rig, full: Rig, points: Tensor, sensor: Tensor):
     ref = full.sensors[full.reference_sensor]
     if ref.type != "camera":
         return None
-    k = ref.intrinsics
+    from moisst_ns.stages.camera.lidar_map import PinholeModel, project
+
     ext = torch.as_tensor(rig.prior_extrinsics, dtype=torch.float32)[sensor]  # ref_T_lidar per point
-    p_ref = (ext[:, :3, :3] @ points[..., None])[..., 0] + ext[:, :3, 3]
-    z = p_ref[:, 2]
-    u = k["fl_x"] * p_ref[:, 0] / z.clamp_min(1e-6) + k["cx"]
-    v = k["fl_y"] * p_ref[:, 1] / z.clamp_min(1e-6) + k["cy"]
-    return (z > 0.5) & (u >= 0) & (u < k["w"]) & (v >= 0) & (v < k["h"])
+    model = PinholeModel.of(ref.intrinsics)
+    uv, z = project(model, (ext[:, :3, :3] @ points[..., None])[..., 0] + ext[:, :3, 3])
+    return (z > 0.5) & (uv[:, 0] >= 0) & (uv[:, 0] < model.width) & (uv[:, 1] >= 0) & (uv[:, 1] < model.height)
 
 
 def load_lidar_points(rig, full: Rig, min_range: float, max_range: float):

@@ -17,10 +17,11 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
+import torch
 from jaxtyping import Float
 from scipy.ndimage import minimum_filter
 
-from moisst_ns.rig.distortion import near_image, opencv_distort
+from moisst_ns.stages.camera.lidar_map import PinholeModel, project
 
 
 def range_image(points: Float[np.ndarray, "num 3"], fx: float, fy: float, cx: float, cy: float, width: int, height: int,
@@ -43,12 +44,9 @@ def range_image(points: Float[np.ndarray, "num 3"], fx: float, fy: float, cx: fl
         Euclidean range from the camera centre per pixel, in the unit of ``points`` (float32); NaN where no point
         projects or the pixel's surface is occluded.
     """
-    z = points[:, 2]
-    pts = points[z > 1e-6]
-    x, y = pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2]
-    near = near_image(x, y, fx, fy, cx, cy, width, height)  # the lens polynomial folds back beyond
-    pts, (x, y) = pts[near], opencv_distort(x[near], y[near], *map(float, distortion))
-    u, v = np.floor(fx * x + cx), np.floor(fy * y + cy)
+    pts = points[points[:, 2] > 1e-6]
+    uv, _ = project(PinholeModel(fx, fy, cx, cy, width, height, tuple(map(float, distortion))), torch.from_numpy(pts))
+    u, v = np.floor(uv[:, 0].numpy()), np.floor(uv[:, 1].numpy())
     inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
     u, v = u.astype(np.int64), v.astype(np.int64)
     pixel = v[inside] * width + u[inside]
