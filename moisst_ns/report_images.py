@@ -8,7 +8,6 @@ import numpy as np
 from jaxtyping import Bool, Float, UInt8
 
 
-
 COLORMAP = "turbo"
 """matplotlib colormap of the depth colouring (near = blue, far = red)."""
 

@@ -34,8 +34,9 @@ def main() -> None:
     parser.add_argument("--calibration", type=Path, default=None)
     args = parser.parse_args()
     rig, truth = load_rig(args.rig), load_calibration(args.rig / "ground_truth.json")
-    if args.calibration is not None and load_calibration(args.calibration).trajectory_T_reference is not None:
-        rig.carry_trajectory(np.asarray(load_calibration(args.calibration).trajectory_T_reference))
+    turn = load_calibration(args.calibration).trajectory_T_reference if args.calibration is not None else None
+    if turn is not None:
+        rig.carry_trajectory(np.asarray(turn))
     config = CameraRegistrationConfig()
     world = feature_map(rig, truth, FeatureMapConfig(voxel=config.map_voxel), log=lambda s: None)
     traj = ReferenceTrajectory.of(rig)
