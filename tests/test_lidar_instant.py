@@ -37,7 +37,7 @@ def drive(tmp_path_factory):
 
 @needs_data
 def test_the_stereo_cameras_place_the_velodyne_the_drive_cannot(drive):
-    """From 50 cm and 5 deg off on every axis (86.6 cm / 8.8 deg), the Velodyne ends within 6 cm per axis and 0.3 deg
+    """From 50 cm and 5 deg off on every axis (86.6 cm / 8.8 deg), the Velodyne ends within 6 cm per axis and 0.2 deg
     per angle of the factory calibration (itself good to a few centimetres): the lever arm and the roll that this
     almost straight drive's motion leaves undetermined, and the pitch and yaw without the OXTS trajectory's 0.67 / 0.45
     deg turn from image_00 that the motion inherits."""
@@ -45,9 +45,30 @@ def test_the_stereo_cameras_place_the_velodyne_the_drive_cannot(drive):
     placed = place_lidar(rig, start, "velodyne", scans, ["image_01", "image_03"], log=lambda line: None)
     error = np.abs(parameter_difference(truth.T_ref_sensor["velodyne"], 0.0, placed.estimate.matrix(), 0.0))
     assert np.all(error[:3] < 0.06), error[:3]
-    assert np.all(np.rad2deg(error[3:6]) < 0.3), np.rad2deg(error[3:6])
+    assert np.all(np.rad2deg(error[3:6]) < 0.2), np.rad2deg(error[3:6])
     assert {"x", "y", "roll", "pitch", "yaw"} <= set(placed.placed)
-    assert placed.cameras == ["image_01", "image_03"] and all(0.95 < s < 1.05 for s in placed.scales)
+    assert placed.cameras == ["image_01", "image_03"] and np.all(np.abs(placed.shifts) < 0.015), placed.shifts
+    print("error", error, "shifts", placed.shifts)
+
+
+@needs_data
+def test_a_stereo_camera_off_along_the_drive_does_not_tilt_the_velodyne(drive):
+    """Both stereo cameras 2 cm behind their factory position at the same instant (what the camera stage's along-track
+    lever arm and time offset trade leaves: its depth error grows across the image and tilts the road by ~0.3 deg): the
+    pairs' shifts take it back (each within 0.8 cm of +2 cm along image_00's axis), and the Velodyne's roll stays
+    within 0.15 deg of the factory calibration."""
+    rig, truth, start, scans = drive
+    moved = Calibration(start.reference_sensor, dict(start.T_ref_sensor), dict(start.time_offset))
+    for camera in ("image_01", "image_03"):
+        T = np.array(moved.T_ref_sensor[camera], dtype=np.float64)
+        T[2, 3] -= 0.02
+        moved.T_ref_sensor[camera] = T
+    placed = place_lidar(rig, moved, "velodyne", scans, ["image_01", "image_03"], log=lambda line: None)
+    error = parameter_difference(truth.T_ref_sensor["velodyne"], 0.0, placed.estimate.matrix(), 0.0)
+    shifts = np.asarray(placed.shifts)
+    print("error", error, "shifts", shifts)
+    assert abs(np.rad2deg(error[3])) < 0.15, np.rad2deg(error[3])
+    assert np.all(np.abs(shifts[:, 1] - 0.02) < 0.008), shifts
 
 
 @needs_data

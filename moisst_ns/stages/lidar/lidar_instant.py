@@ -7,8 +7,10 @@ in, which a real trajectory source need not share with the reference camera (KIT
 that sees the same instant are triangulated from their two poses (``camera_map.triangulate``); each point must
 lie on the surface of the LiDAR's scan of that instant, placed by eq. 1-2: point-to-plane residuals, each weighted by
 its noise (the plane's and the stereo depth's along the plane's normal), Huber, fitted in the LiDAR's rotation and lever
-arm (its time offset held: on a straight drive it trades with the along-track lever arm) and one depth scale per camera
-pair (what an error of the pair's baseline does, which the LiDAR's range pins). Only the milliseconds between the
+arm (its time offset held: on a straight drive it trades with the along-track lever arm) and, per camera pair, a shift of
+the second camera's centre (what the pair's own calibration error does to its triangulation: along the baseline a depth
+scale, which the LiDAR's range pins; along the reference camera's axis a depth error that grows across the image, which
+tilts the road like a roll of the LiDAR). Only the milliseconds between the
 cameras' and the scan's instants pass through the trajectory, so its drift and turn do not enter, and a moving car is
 seen where both sensors see it. A parameter is placed where its sigma (``InstantPlacement.sigma``) is below a typical
 prior error. No nerfstudio import.
@@ -64,8 +66,11 @@ class InstantPoints:
     """From there to the triangulated point, metres: the point at depth scale ``s`` is ``origin + s * ray``."""
     depth_sigma: Float[np.ndarray, "num"]
     """The depth noise along the ray, metres."""
+    shift_gradient: Float[np.ndarray, "num 2"]
+    """How the point's depth scale along ``ray`` (1 as triangulated) grows with a shift of the second camera's centre,
+    per metre, along the pair's baseline and along the reference camera's axis orthogonal to it (``shift_axes``)."""
     pair: int
-    """Index of the camera pair (its depth scale)."""
+    """Index of the camera pair (its shifts)."""
 
 
 @dataclass
@@ -75,15 +80,17 @@ class InstantPlacement:
     estimate: Extrinsic
     """The fit of every parameter but the time offset."""
     sigma: List[float]
-    """Per ``PARAMETERS`` (m, rad; the time offset's nan): the frame-clustered sigma, at least half the difference of the
-    drive's halves and of the camera pairs fitted alone, and the whole difference to the fit with the pairs' depth scales
-    held at 1 (where the cameras' calibration and the LiDAR's range disagree, what that does to the placement)."""
+    """Per ``PARAMETERS`` (m, rad; the time offset's nan): the frame-clustered sigma (the pairs' shifts marginalised),
+    at least half the difference of the drive's halves and of the camera pairs fitted alone, and the whole difference
+    to the fit with the pairs as calibrated (shifts held at 0: where the data and the cameras' calibration disagree,
+    what the shifts did to the placement)."""
     placed: List[str]
     """The parameters whose sigma is below a typical prior error."""
     rows: int
     cameras: List[str]
-    scales: List[float] = field(default_factory=list)
-    """The depth scale fitted per camera pair (1: its baseline as calibrated)."""
+    shifts: List[List[float]] = field(default_factory=list)
+    """The shift of each camera pair's second camera fitted with the LiDAR, metres, along ``shift_axes`` (0: the pair
+    as calibrated)."""
     along_track: List[float] = field(default_factory=list)
     """The mean velocity in the reference frame, m/s: a time-offset error ``e`` moves the placed lever arm by
     ``-along_track * e`` (the time offset is held)."""
@@ -97,8 +104,17 @@ class InstantPlacement:
 
     def to_json(self) -> dict:
         return {"T_ref_sensor": self.estimate.matrix().tolist(), "sigma": [None if not np.isfinite(s) else float(s) for s in self.sigma],
-                "placed": self.placed, "rows": self.rows, "cameras": self.cameras, "scales": self.scales, "along_track": self.along_track,
+                "placed": self.placed, "rows": self.rows, "cameras": self.cameras, "shifts": self.shifts, "along_track": self.along_track,
                 "taken": self.taken, **({"turn_rotvec": self.turn} if self.turn else {})}
+
+
+def shift_axes(baseline: Float[np.ndarray, "3"]) -> Float[np.ndarray, "2 3"]:
+    """The directions a camera pair's second camera is let shift in, reference camera's frame: along the
+    baseline (a depth scale) and along the reference camera's axis orthogonal to it (a depth error that grows across the
+    image); the third, across both, moves the triangulated depth hardly at all."""
+    along = baseline / np.linalg.norm(baseline)
+    axis = np.array([0.0, 0.0, 1.0]) - along[2] * along
+    return np.stack([along, axis / max(np.linalg.norm(axis), 1e-9)])
 
 
 def instant_points(rig: Rig, traj: ReferenceTrajectory, calibration: Calibration, camera: str, pair: int, features: int = 4000,
@@ -122,6 +138,7 @@ def instant_points(rig: Rig, traj: ReferenceTrajectory, calibration: Calibration
         t = at[name][frame] + row_time(xy[:, 1] + 0.5, float(spec.readout_time), int(spec.intrinsics["h"]))
         return (traj(torch.from_numpy(np.asarray(t, dtype=np.float64))) @ torch.from_numpy(np.asarray(calibration.T_ref_sensor[name], dtype=np.float64))).numpy()
 
+    axes = shift_axes(np.asarray(calibration.T_ref_sensor[camera], dtype=np.float64)[:3, 3] - np.asarray(calibration.T_ref_sensor[ref], dtype=np.float64)[:3, 3])
     out = []
     for i, (k, j) in enumerate(used):
         ia, ib = ratio_matches(keys[ref][1][i], keys[camera][1][i], ratio)
@@ -142,13 +159,18 @@ def instant_points(rig: Rig, traj: ReferenceTrajectory, calibration: Calibration
         origin, ray = pose[ref][ok, :3, 3], world[ok] - pose[ref][ok, :3, 3]
         baseline = np.linalg.norm(pose[camera][ok, :3, 3] - origin, axis=1)
         sigma = np.sum(ray**2, axis=1) / (float(rig.sensors[ref].intrinsics["fl_x"]) * np.maximum(baseline, 1e-6)) * PIXEL_SIGMA
-        out.append(InstantPoints(float(at[ref][k]), origin, ray, sigma, pair))
+        # origin + l * ray = c + m * seen, with c moved by dc: dl = dc . (seen x (ray x seen)) / |ray x seen|^2
+        seen = world[ok] - pose[camera][ok, :3, 3]
+        normal = np.cross(ray, seen)
+        gradient = np.cross(seen, normal) / np.maximum(np.sum(normal**2, axis=1), 1e-12)[:, None]
+        out.append(InstantPoints(float(at[ref][k]), origin, ray, sigma, np.einsum("nji,nj->ni", pose[ref][ok, :3, :3], gradient) @ axes.T, pair))
     return out
 
 
-def _rows(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, sets: Sequence[InstantPoints], scales: np.ndarray, radius: float):
-    """Point-to-plane correspondences: each triangulated point's nearest planar LiDAR point of the scan at its instant
-    within ``radius`` (world frame). Returns (LiDAR point index, world normal, origin, ray, pair, weight, set)."""
+def _rows(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, sets: Sequence[InstantPoints], shifts: np.ndarray, radius: float):
+    """Point-to-plane correspondences: each triangulated point (its pair's camera shifted by ``shifts[pair]``) and its
+    nearest planar LiDAR point of the scan at its instant within ``radius`` (world frame). Returns (LiDAR point index,
+    world normal, origin, ray as triangulated, its derivative by the shift (num, 3, 2), pair, weight, set)."""
     rows, indices = [], {}
     for s, pts in enumerate(sets):
         k = int(np.argmin(np.abs(scans.stamps + ext.time_offset - pts.time)))
@@ -158,49 +180,57 @@ def _rows(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, sets: Seque
         if k not in indices:  # each scan placed and indexed once, whichever camera pairs see its instant
             indices[k] = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(place_points(traj, ext, scans.points[part], scans.times[part])))
             indices[k].knn_index()
-        found, dist2 = indices[k].knn_search(o3d.core.Tensor(pts.origin + scales[pts.pair] * pts.ray), 1)
+        ray = (1.0 + pts.shift_gradient @ shifts[pts.pair])[:, None] * pts.ray
+        found, dist2 = indices[k].knn_search(o3d.core.Tensor(pts.origin + ray), 1)
         g = found.numpy()[:, 0].astype(np.int64) + part.start
         keep = (dist2.numpy()[:, 0] < radius**2) & scans.planar[g]
         world_R_ref = traj.pose_and_rates(np.array([pts.time]))[0][0]  # the scan's turn over its sweep is neglected here
         normal = scans.normals[g[keep]] @ (world_R_ref @ ext.rotation).T
-        ray = pts.ray[keep]
-        along = np.abs(np.sum(normal * ray, axis=1)) / np.linalg.norm(ray, axis=1)
-        weight = 1.0 / np.sqrt(PLANE_SIGMA**2 + scans.thickness[g[keep]] ** 2 + (along * pts.depth_sigma[keep] * scales[pts.pair]) ** 2)
-        rows.append((g[keep], normal, pts.origin[keep], ray, np.full(keep.sum(), pts.pair), weight, np.full(keep.sum(), s)))
+        along = np.abs(np.sum(normal * ray[keep], axis=1)) / np.linalg.norm(ray[keep], axis=1)
+        weight = 1.0 / np.sqrt(PLANE_SIGMA**2 + scans.thickness[g[keep]] ** 2 + (along * pts.depth_sigma[keep]) ** 2)
+        rows.append((g[keep], normal, pts.origin[keep], pts.ray[keep], pts.ray[keep, :, None] * pts.shift_gradient[keep, None, :],
+                     np.full(keep.sum(), pts.pair), weight, np.full(keep.sum(), s)))
     return [np.concatenate(c) for c in zip(*rows)] if rows else None
 
 
 def fit_instant(traj: ReferenceTrajectory, start: Extrinsic, scans: ScanSet, sets: Sequence[InstantPoints], pairs: int,
-                radii: Sequence[float] = RADII, fit_scales: bool = True) -> Tuple[Extrinsic, np.ndarray, int, np.ndarray]:
-    """Gauss-Newton (Huber IRLS) of the rotation, lever arm and (``fit_scales``) the pairs' depth scales, coarse to
-    fine radii.
+                radii: Sequence[float] = RADII, shift_sigma: Optional[np.ndarray] = None) -> Tuple[Extrinsic, np.ndarray, int, np.ndarray]:
+    """Gauss-Newton (Huber IRLS) of the rotation, lever arm and the pairs' camera shifts, coarse to fine radii, each
+    shift under a Gaussian prior of ``shift_sigma`` (pairs, 2; metres; inf or None: free; 0: held).
 
     Returns:
-        (the estimate, the scales, rows used, the frame-clustered sigma in Jacobian order (rotation, lever arm; rad, m)).
+        (the estimate, the shifts (pairs, 2) m, rows used, the frame-clustered sigma in Jacobian order (rotation, lever
+        arm; rad, m)).
     """
-    ext, scales, sigma, rows = start, np.ones(pairs), np.full(6, np.inf), 0
+    ext, shifts, sigma, rows = start, np.zeros((pairs, 2)), np.full(6, np.inf), 0
+    prior = np.zeros(2 * pairs) if shift_sigma is None else 1.0 / np.maximum(np.asarray(shift_sigma, dtype=np.float64).ravel(), 1e-9)
     for radius in radii:
-        found = _rows(traj, ext, scans, sets, scales, radius)
+        found = _rows(traj, ext, scans, sets, shifts, radius)
         if found is None or len(found[0]) < MIN_ROWS:
-            return ext, scales, 0 if found is None else len(found[0]), np.full(6, np.inf)
-        g, normal, origin, ray, pair, weight, which = found
+            return ext, shifts, 0 if found is None else len(found[0]), np.full(6, np.inf)
+        g, normal, origin, ray0, gradient, pair, weight, which = found
         for _ in range(3):
+            ray = ray0 + np.einsum("nij,nj->ni", gradient, shifts[pair])
             nx, jac = placement_jacobian(traj, ext, np.zeros(7), scans.points[g], scans.times[g], normal)
-            res = weight * (np.sum(normal * (origin + scales[pair][:, None] * ray), axis=1) - nx)
-            J = np.zeros((len(g), 6 + pairs))
+            res = weight * (np.sum(normal * (origin + ray), axis=1) - nx)
+            J = np.zeros((len(g), 6 + 2 * pairs))
             J[:, :6] = -weight[:, None] * jac[:, :6]
-            J[np.arange(len(g)), 6 + pair] = weight * np.sum(normal * ray, axis=1)
-            J = J if fit_scales else J[:, :6]
+            for i in range(2):
+                J[np.arange(len(g)), 6 + 2 * pair + i] = weight * np.sum(normal * gradient[:, :, i], axis=1)
             root = np.sqrt(huber_weights(res, HUBER))
-            step = np.linalg.lstsq(J * root[:, None], -res * root, rcond=None)[0]
-            ext, scales = ext.updated(np.concatenate([step[:6], [0.0]])), scales + (step[6:] if fit_scales else 0.0)
+            # the shifts' prior: one row each, its own cluster
+            J_all = np.vstack([J * root[:, None], np.hstack([np.zeros((len(prior), 6)), np.diag(prior)])])
+            res_all = np.concatenate([res * root, prior * shifts.ravel()])
+            step = np.linalg.lstsq(J_all, -res_all, rcond=None)[0]
+            ext = ext.updated(np.concatenate([step[:6], [0.0]]))
+            shifts = shifts + step[6:].reshape(pairs, 2)
         rows = len(g)
-        sigma = least_squares_sigma(J * root[:, None], res * root, which).sigma[:6]
-    return ext, scales, rows, sigma
+        sigma = least_squares_sigma(J_all, res_all, np.concatenate([which, -1 - np.arange(len(prior))])).sigma[:6]
+    return ext, shifts, rows, sigma
 
 
 def place_lidar(rig: Rig, calibration: Calibration, lidar: str, scans: ScanSet, cameras: Sequence[str],
-                log: Callable[[str], None] = print) -> "InstantPlacement | None":
+                log: Callable[[str], None] = print, camera_sigma: Optional[Dict[str, Sequence[float]]] = None) -> "InstantPlacement | None":
     """The LiDAR ``lidar`` against ``cameras`` (registered, in ``calibration``) and the reference camera at the same
     instants, from its estimate in ``calibration``; None when no pair of them has ``MIN_BASELINE`` or ``MIN_ROWS``.
 
@@ -211,6 +241,8 @@ def place_lidar(rig: Rig, calibration: Calibration, lidar: str, scans: ScanSet, 
         scans: its scans (``lidar_scans.load_scans``).
         cameras: the cameras that may pair with the reference camera.
         log: where progress lines go.
+        camera_sigma: per camera, its registration's sigma (Jacobian order: rad, m, s): the prior of its pair's shifts
+            (none: free).
     """
     traj = ReferenceTrajectory.of(rig)
     ref = np.asarray(calibration.T_ref_sensor[rig.reference_sensor], dtype=np.float64)
@@ -220,37 +252,46 @@ def place_lidar(rig: Rig, calibration: Calibration, lidar: str, scans: ScanSet, 
     sets = [replace(p, pair=i) for i, c in enumerate(usable) for p in found[c]]
     if sum(len(s.ray) for s in sets) < MIN_ROWS:
         return None
+    rot, _, _, velocity = traj.pose_and_rates(np.array([p.time for p in sets]))
+    along = np.mean(np.einsum("nji,nj->ni", rot, velocity), axis=0)
+    shift_sigma = np.full((len(usable), 2), np.inf)
+    for i, c in enumerate(usable):
+        if camera_sigma is not None and c in camera_sigma:  # its position's and, along the drive, its time offset's
+            sig = np.asarray(camera_sigma[c], dtype=np.float64)
+            cov = np.diag(sig[3:6] ** 2) + sig[6] ** 2 * np.outer(along, along)
+            axes = shift_axes(np.asarray(calibration.T_ref_sensor[c], dtype=np.float64)[:3, 3] - ref[:3, 3])
+            shift_sigma[i] = np.sqrt(np.einsum("ij,jk,ik->i", axes, cov, axes))
     T = np.asarray(calibration.T_ref_sensor[lidar], dtype=np.float64)
     start = Extrinsic(T[:3, :3].copy(), T[:3, 3].copy(), float(calibration.time_offset[lidar]))
-    whole, scales, rows, formal = fit_instant(traj, start, scans, sets, len(usable))
+    whole, shifts, rows, formal = fit_instant(traj, start, scans, sets, len(usable), shift_sigma=shift_sigma)
     if rows < MIN_ROWS:
         return None
     middle = np.median([s.time for s in sets])
-    halves = [fit_instant(traj, whole, scans, [s for s in sets if (s.time < middle) == first], len(usable), RADII[-3:])
+    halves = [fit_instant(traj, whole, scans, [s for s in sets if (s.time < middle) == first], len(usable), RADII[-3:], shift_sigma=shift_sigma)
               for first in (True, False)]
     apart = np.full(6, np.inf)
     if all(h[2] >= MIN_ROWS for h in halves):
         apart = np.abs(parameter_difference(halves[0][0].matrix(), 0.0, halves[1][0].matrix(), 0.0)[:6])
-    fixed = fit_instant(traj, whole, scans, sets, len(usable), RADII[-3:], fit_scales=False)
-    if fixed[2] >= MIN_ROWS:  # the pairs' baselines as calibrated instead of as the LiDAR's range scales them
+    fixed = fit_instant(traj, whole, scans, sets, len(usable), RADII[-3:], shift_sigma=np.zeros((len(usable), 2)))
+    if fixed[2] >= MIN_ROWS:  # the pairs as calibrated: where the data pull the shifts where the cameras do not put them
         apart = np.fmax(apart, 2 * np.abs(parameter_difference(whole.matrix(), 0.0, fixed[0].matrix(), 0.0)[:6]))
     if len(usable) > 1:  # each camera pair alone: what the cameras' own calibration errors do
-        alone = [fit_instant(traj, whole, scans, [replace(s, pair=0) for s in sets if s.pair == i], 1, RADII[-3:]) for i in range(len(usable))]
+        alone = [fit_instant(traj, whole, scans, [replace(s, pair=0) for s in sets if s.pair == i], 1, RADII[-3:], shift_sigma=shift_sigma[i:i + 1])
+                 for i in range(len(usable))]
         fits = [a[0].matrix() for a in alone if a[2] >= MIN_ROWS]
         for a in fits[1:]:
             apart = np.fmax(apart, np.abs(parameter_difference(fits[0], 0.0, a, 0.0)[:6]))
     sigma = [float(max(formal[JACOBIAN_ORDER[i]], apart[i] / 2)) for i in range(6)] + [float("nan")]
     placed = [p for p, s, typical in zip(PARAMETERS[:6], sigma, TEST_STEPS) if s <= typical]
-    rot, _, _, velocity = traj.pose_and_rates(np.array([p.time for p in sets]))
-    along = np.mean(np.einsum("nji,nj->ni", rot, velocity), axis=0)
     log(f"[camera-registration] {lidar} against {', '.join(usable)} at the same instants: {rows} rows; sigma "
         + ", ".join(f"{p} {s * (100 if i < 3 else np.rad2deg(1.0)):.3g}" for i, (p, s) in enumerate(zip(PARAMETERS[:6], sigma)))
-        + f" (cm, deg); depth scales {', '.join(f'{v:.4f}' for v in scales)}; placed: {', '.join(placed) or 'nothing'}")
-    return InstantPlacement(whole, sigma, placed, rows, list(usable), [float(v) for v in scales], [float(v) for v in along])
+        + f" (cm, deg); pair shifts {', '.join('(' + ', '.join(f'{100 * v:.2f}' for v in d) + ')' for d in shifts)} cm; placed: {', '.join(placed) or 'nothing'}")
+    return InstantPlacement(whole, sigma, placed, rows, list(usable), shifts.tolist(), [float(v) for v in along])
 
 
 def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], undetermined: Dict[str, Sequence[str]],
-                 motion_sigma: Dict[str, Sequence[float]], log: Callable[[str], None] = print) -> Dict[str, InstantPlacement]:
+                 motion_sigma: Dict[str, Sequence[float]], log: Callable[[str], None] = print,
+                 camera_sigma: Optional[Dict[str, Sequence[float]]] = None) -> Dict[str, InstantPlacement]:
     """Every LiDAR whose scans' motion left parameters undetermined, against the registered ``cameras`` at the same
     instants; ``calibration`` takes, per LiDAR, the parameters placed here that its scans' motion did not determine (the
     depth edges' view of the LiDAR-first stage may have placed them: the two cameras' triangulation at one instant
@@ -268,6 +309,7 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
         undetermined: per LiDAR, what its scans' motion did not determine (``LidarResult.motion_undetermined``).
         motion_sigma: per LiDAR, the LiDAR-first stage's sigma (an empty dict: only the undetermined are taken).
         log: where progress lines go.
+        camera_sigma: per camera, its registration's sigma (``place_lidar``).
 
     Returns:
         Per LiDAR placed, the placement with ``taken`` set.
@@ -279,7 +321,7 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
         if not unknown or not cameras:
             continue
         scans = load_scans(rig, lidar, ReferenceTrajectory.of(rig), LidarFirstConfig(), log)
-        found = place_lidar(rig, calibration, lidar, scans, cameras, log)
+        found = place_lidar(rig, calibration, lidar, scans, cameras, log, camera_sigma)
         if found is None:
             log(f"[camera-registration] {lidar}: no pair of cameras {MIN_BASELINE} m apart puts {MIN_ROWS} points on its scans at the same "
                 "instants: nothing placed")
