@@ -1,6 +1,7 @@
 """A LiDAR placed against what two cameras triangulate at the same instant (``stages/lidar/lidar_instant``): on the real
 KITTI raw drive 0048 (skipped without ../shared/data), and the sigma a LiDAR's record then carries."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -132,3 +133,45 @@ def test_a_parameter_placed_at_the_shared_instants_carries_their_sigma_and_the_t
     sigma, source = stage_sigma(entry)
     np.testing.assert_allclose(sigma, [np.hypot(0.011, 0.1 * 0.004), 0.5, np.hypot(0.013, 7.8 * 0.004), 0.0014, 0.002, 0.003, 0.004])
     assert source.endswith("and the shared instants")
+
+
+def test_an_undetermined_parameter_is_taken_where_the_shared_instants_beat_the_motions_sigma(tmp_path, monkeypatch):
+    """A parameter the motion left undetermined is taken from the shared instants when they place it (sigma below a
+    typical prior error) or, less sharply, with a sigma below the motion's (the held prior's: KITTI raw 0048's
+    along-track lever arm, 10 cm against 1 m); not when the motion's is the smaller, and not without the motion's
+    sigma. Exact moves: the taken components change by the placement's, the others not at all."""
+    from moisst_ns.datasets.synth import SynthConfig, make_rig
+    from moisst_ns.stages.lidar import lidar_instant, lidar_scans
+    from moisst_ns.stages.lidar.lidar_geometry import Extrinsic
+    from moisst_ns.stages.lidar.lidar_instant import InstantPlacement
+
+    rig = load_rig(make_rig(SynthConfig(out=tmp_path / "rig", seed=1, width=32, height=24, frames=2)))
+    start = Calibration.from_rig(rig)
+    T = np.asarray(start.T_ref_sensor["lidar"], dtype=np.float64)
+    placement = InstantPlacement(Extrinsic(T[:3, :3], T[:3, 3] + [0.03, 0.04, 0.05], 0.0),
+                                 [0.01, 0.02, 0.15] + [np.deg2rad(0.1)] * 3 + [float("nan")], ["x", "y", "roll", "pitch", "yaw"], 500, ["cam"])
+    monkeypatch.setattr(lidar_instant, "place_lidar", lambda *args: replace(placement, taken=[]))
+    monkeypatch.setattr(lidar_scans, "load_scans", lambda *args: None)
+    held = [1.0, 1.0, 1.0, 0.17, np.deg2rad(0.01), np.deg2rad(0.01), 0.1]  # x, y, z, roll held at the prior
+    for motion, taken in (({"lidar": held}, ["x", "y", "z", "roll"]), ({"lidar": held[:2] + [0.05] + held[3:]}, ["x", "y", "roll"]), ({}, ["x", "y", "roll"])):
+        calibration = Calibration(start.reference_sensor, dict(start.T_ref_sensor), dict(start.time_offset))
+        out = place_lidars(rig, calibration, ["cam"], {"lidar": ["x", "y", "z", "roll"]}, motion, log=lambda line: None)
+        assert out["lidar"].taken == taken
+        moved = np.asarray(calibration.T_ref_sensor["lidar"])[:3, 3] - T[:3, 3]
+        np.testing.assert_allclose(moved, [0.03, 0.04, 0.05 if "z" in taken else 0.0], atol=1e-12)
+
+
+def test_the_cameras_that_may_pair_with_the_reference_camera(tmp_path):
+    """``pairs_with_reference`` (what turns the LiDAR stage's depth-edge view off in the full pipeline): every
+    non-reference camera whose prior lies 20 cm or more from the reference camera; one moved to 10 cm drops out; a
+    LiDAR reference has none."""
+    from moisst_ns.datasets.synth import SynthConfig, make_rig
+    from moisst_ns.stages.lidar.lidar_instant import pairs_with_reference
+
+    rig = load_rig(make_rig(SynthConfig(out=tmp_path / "rig", seed=1, width=32, height=24, frames=2)))
+    assert pairs_with_reference(rig) == ["cam_front_right", "cam_left"]
+    near = np.array(rig.sensors["cam_front_right"].T_ref_sensor, dtype=np.float64)
+    near[:3, 3] = [0.1, 0.0, 0.0]
+    rig.sensors["cam_front_right"] = replace(rig.sensors["cam_front_right"], T_ref_sensor=near)
+    assert pairs_with_reference(rig) == ["cam_left"]
+    assert pairs_with_reference(replace(rig, reference_sensor="lidar")) == []

@@ -117,6 +117,16 @@ def shift_axes(baseline: Float[np.ndarray, "3"]) -> Float[np.ndarray, "2 3"]:
     return np.stack([along, axis / max(np.linalg.norm(axis), 1e-9)])
 
 
+def pairs_with_reference(rig: Rig) -> List[str]:
+    """The cameras whose prior puts them ``MIN_BASELINE`` or more from the reference camera: those that may place a
+    LiDAR at the same instants once registered (none when the reference sensor is not a camera)."""
+    ref = rig.sensors[rig.reference_sensor]
+    if ref.type != "camera":
+        return []
+    return [n for n, s in rig.sensors.items() if n != rig.reference_sensor and s.type == "camera"
+            and np.linalg.norm(np.asarray(s.T_ref_sensor)[:3, 3] - np.asarray(ref.T_ref_sensor)[:3, 3]) >= MIN_BASELINE]
+
+
 def instant_points(rig: Rig, traj: ReferenceTrajectory, calibration: Calibration, camera: str, pair: int, features: int = 4000,
                    ratio: float = 0.8) -> List[InstantPoints]:
     """The reference camera's matches with ``camera`` at the same instants, triangulated from each match's two poses
@@ -167,10 +177,16 @@ def instant_points(rig: Rig, traj: ReferenceTrajectory, calibration: Calibration
     return out
 
 
+def _shifted(ray: Float[np.ndarray, "num 3"], gradient: Float[np.ndarray, "num 2"], shift: Float[np.ndarray, "*num 2"]) -> Float[np.ndarray, "num 3"]:
+    """The ray (metres) to the point triangulated with the pair's second camera shifted by ``shift`` (metres, along
+    ``shift_axes``), to first order: its depth scale ``1 + gradient . shift``."""
+    return (1.0 + np.sum(gradient * shift, axis=-1))[:, None] * ray
+
+
 def _rows(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, sets: Sequence[InstantPoints], shifts: np.ndarray, radius: float):
     """Point-to-plane correspondences: each triangulated point (its pair's camera shifted by ``shifts[pair]``) and its
     nearest planar LiDAR point of the scan at its instant within ``radius`` (world frame). Returns (LiDAR point index,
-    world normal, origin, ray as triangulated, its derivative by the shift (num, 3, 2), pair, weight, set)."""
+    world normal, origin, ray as triangulated, its depth scale's gradient by the shift (num, 2), pair, weight, set)."""
     rows, indices = [], {}
     for s, pts in enumerate(sets):
         k = int(np.argmin(np.abs(scans.stamps + ext.time_offset - pts.time)))
@@ -180,7 +196,7 @@ def _rows(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, sets: Seque
         if k not in indices:  # each scan placed and indexed once, whichever camera pairs see its instant
             indices[k] = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(place_points(traj, ext, scans.points[part], scans.times[part])))
             indices[k].knn_index()
-        ray = (1.0 + pts.shift_gradient @ shifts[pts.pair])[:, None] * pts.ray
+        ray = _shifted(pts.ray, pts.shift_gradient, shifts[pts.pair])
         found, dist2 = indices[k].knn_search(o3d.core.Tensor(pts.origin + ray), 1)
         g = found.numpy()[:, 0].astype(np.int64) + part.start
         keep = (dist2.numpy()[:, 0] < radius**2) & scans.planar[g]
@@ -188,7 +204,7 @@ def _rows(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet, sets: Seque
         normal = scans.normals[g[keep]] @ (world_R_ref @ ext.rotation).T
         along = np.abs(np.sum(normal * ray[keep], axis=1)) / np.linalg.norm(ray[keep], axis=1)
         weight = 1.0 / np.sqrt(PLANE_SIGMA**2 + scans.thickness[g[keep]] ** 2 + (along * pts.depth_sigma[keep]) ** 2)
-        rows.append((g[keep], normal, pts.origin[keep], pts.ray[keep], pts.ray[keep, :, None] * pts.shift_gradient[keep, None, :],
+        rows.append((g[keep], normal, pts.origin[keep], pts.ray[keep], pts.shift_gradient[keep],
                      np.full(keep.sum(), pts.pair), weight, np.full(keep.sum(), s)))
     return [np.concatenate(c) for c in zip(*rows)] if rows else None
 
@@ -210,13 +226,13 @@ def fit_instant(traj: ReferenceTrajectory, start: Extrinsic, scans: ScanSet, set
             return ext, shifts, 0 if found is None else len(found[0]), np.full(6, np.inf)
         g, normal, origin, ray0, gradient, pair, weight, which = found
         for _ in range(3):
-            ray = ray0 + np.einsum("nij,nj->ni", gradient, shifts[pair])
+            ray = _shifted(ray0, gradient, shifts[pair])
             nx, jac = placement_jacobian(traj, ext, np.zeros(7), scans.points[g], scans.times[g], normal)
             res = weight * (np.sum(normal * (origin + ray), axis=1) - nx)
             J = np.zeros((len(g), 6 + 2 * pairs))
             J[:, :6] = -weight[:, None] * jac[:, :6]
             for i in range(2):
-                J[np.arange(len(g)), 6 + 2 * pair + i] = weight * np.sum(normal * gradient[:, :, i], axis=1)
+                J[np.arange(len(g)), 6 + 2 * pair + i] = weight * np.sum(normal * ray0, axis=1) * gradient[:, i]
             root = np.sqrt(huber_weights(res, HUBER))
             # the shifts' prior: one row each, its own cluster
             J_all = np.vstack([J * root[:, None], np.hstack([np.zeros((len(prior), 6)), np.diag(prior)])])
@@ -285,7 +301,8 @@ def place_lidar(rig: Rig, calibration: Calibration, lidar: str, scans: ScanSet, 
     placed = [p for p, s, typical in zip(PARAMETERS[:6], sigma, TEST_STEPS) if s <= typical]
     log(f"[camera-registration] {lidar} against {', '.join(usable)} at the same instants: {rows} rows; sigma "
         + ", ".join(f"{p} {s * (100 if i < 3 else np.rad2deg(1.0)):.3g}" for i, (p, s) in enumerate(zip(PARAMETERS[:6], sigma)))
-        + f" (cm, deg); pair shifts {', '.join('(' + ', '.join(f'{100 * v:.2f}' for v in d) + ')' for d in shifts)} cm; placed: {', '.join(placed) or 'nothing'}")
+        + f" (cm, deg); pair shifts {', '.join('(' + ', '.join(f'{100 * v:.2f}' for v in d) + ')' for d in shifts)} cm under sigma "
+        + f"{', '.join('(' + ', '.join(f'{100 * v:.3g}' for v in d) + ')' for d in shift_sigma)} cm; placed: {', '.join(placed) or 'nothing'}")
     return InstantPlacement(whole, sigma, placed, rows, list(usable), shifts.tolist(), [float(v) for v in along])
 
 
@@ -293,10 +310,11 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
                  motion_sigma: Dict[str, Sequence[float]], log: Callable[[str], None] = print,
                  camera_sigma: Optional[Dict[str, Sequence[float]]] = None) -> Dict[str, InstantPlacement]:
     """Every LiDAR whose scans' motion left parameters undetermined, against the registered ``cameras`` at the same
-    instants; ``calibration`` takes, per LiDAR, the parameters placed here that its scans' motion did not determine (the
-    depth edges' view of the LiDAR-first stage may have placed them: the two cameras' triangulation at one instant
-    replaces that view, which is biased by its edges and, with few of them, can fall in a wrong minimum) or determined
-    less precisely (``motion_sigma``, ``PARAMETERS`` order), and every one placed here when one of them lies more than 3
+    instants; ``calibration`` takes, per LiDAR, the parameters its scans' motion did not determine, placed here or with
+    a sigma below that stage's (its prior's where it held them: KITTI raw 0048's along-track lever arm, 10 cm against
+    1 m; the depth edges' view of the LiDAR-first stage may have placed them: the two cameras' triangulation at one
+    instant replaces that view, which is biased by its edges and, with few of them, can fall in a wrong minimum), those
+    it determined less precisely (``motion_sigma``, ``PARAMETERS`` order), and every one placed here when one of them lies more than 3
     combined sigma from the motion's: the motion calibrates a LiDAR in the frame the trajectory is given in, the shared
     instant in the reference camera's, which defines the rig's, and such a difference says the two frames differ (KITTI
     raw 0048: the OXTS trajectory turned 0.67 / 0.45 deg from image_00); the placement then records that turn
@@ -334,8 +352,8 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
         other_frame = max(apart.values(), default=0.0) > 3  # the trajectory's frame is not the reference camera's
         for i, p in enumerate(PARAMETERS[:6]):
             unit = 100.0 if i < 3 else float(np.rad2deg(1.0))
-            if p in found.placed and p in unknown:
-                why[p] = "not determined by the motion"
+            if p in unknown and (p in found.placed or (motion is not None and found.sigma[i] < motion[i])):
+                why[p] = "not determined by the motion" + ("" if p in found.placed else f": sigma {found.sigma[i] * unit:.3g} against its {motion[i] * unit:.3g}")
             elif p in apart and (other_frame or found.sigma[i] < motion[i]):
                 why[p] = f"sigma {found.sigma[i] * unit:.3g} against the motion's {motion[i] * unit:.3g}, {apart[p]:.1f} sigma apart"
         found.taken = list(why)

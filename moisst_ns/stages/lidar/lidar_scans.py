@@ -88,7 +88,8 @@ class LidarFirstConfig:
     view_search: bool = True
     """Where the halves hold rotations or lever-arm components at the prior and the reference sensor is a camera: place
     them by the reference camera's view of the LiDAR's depth edges (``lidar_view.search_held``), then fit the free
-    parameters again around them."""
+    parameters again around them. ``moisst-calibrate`` and ``ns-train`` turn it off where a camera may place the LiDAR
+    at the same instants (``lidar_instant.pairs_with_reference``), which replaces the view."""
 
 
 
