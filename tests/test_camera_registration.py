@@ -196,6 +196,7 @@ def test_a_trajectory_turned_from_the_reference_camera_is_carried_back_before_th
     turn = np.eye(4)
     turn[:3, :3] = Rotation.from_rotvec(np.deg2rad([0.4, 0.3, 0.0])).as_matrix()
     monkeypatch.setattr(camera_registration, "place_lidars", lambda *args: {"lidar": None})  # the first pass only
+    monkeypatch.setattr(camera_registration, "place_again", lambda rig, calibration, placements, *args: placements)
     monkeypatch.setattr(camera_registration, "trajectory_turn", lambda lidars, log: turn if lidars else None)
     given = replace(rig)
     given.carry_trajectory(turn.T)  # the trajectory of a frame turned from the reference camera by the turn's inverse

@@ -26,7 +26,7 @@ from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, NoOv
 from moisst_ns.stages.camera.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, convergence_tail, held_back_check, points_per_frame, reference_cost,
                                             resolution_spread, solve, split_half_spread, typical_error_significance)
 from moisst_ns.stages.camera.photometric import CameraFrames, PairSet, Registration, robust_cost
-from moisst_ns.stages.lidar.lidar_instant import InstantPlacement, place_lidars, trajectory_turn
+from moisst_ns.stages.lidar.lidar_instant import InstantPlacement, place_again, place_lidars, trajectory_turn
 from moisst_ns.stages.trust.observability import huber_weights
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
@@ -308,7 +308,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             placed by its depth edges' view or not (``LidarResult.motion_undetermined``; None: all determined).
         lidar_sigma: per LiDAR, that stage's sigma (``PARAMETERS`` order); both feed ``place_lidars`` (None: no LiDAR is
             placed). When the placements say the trajectory is turned (``trajectory_turn``), the cameras are registered
-            again on it carried to the reference camera (``trajectory_T_reference``).
+            again on it carried to the reference camera (``trajectory_T_reference``) and the LiDARs placed again against
+            them (``place_again``).
 
     Returns:
         The result; ``calibration`` holds the registered cameras (or their priors where kept).
@@ -382,8 +383,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     turn = trajectory_turn(lidars, log)
     if turn is None:
         return result
-    # the trajectory is not given in the reference camera's frame: the cameras again on it carried there, the LiDARs
-    # held where the shared instants put them (not placed again: the motion's estimate was of the other frame)
+    # the trajectory is not given in the reference camera's frame: the cameras again on it carried there, then the
+    # LiDARs placed again against them (taking what they took the first time: the motion's estimate was of the other frame)
     carried, start = replace(rig), replace(calibration, T_ref_sensor={**calibration.T_ref_sensor, **{n: out.T_ref_sensor[n] for n in lidars}})
     carried.carry_trajectory(turn)
     try:
@@ -392,4 +393,5 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         log(f"[camera-registration] on the carried trajectory: {err}: the trajectory and the cameras as first registered")
         return result
     again.calibration.trajectory_T_reference = turn
-    return replace(again, lidars=lidars)
+    registered = [n for n in cameras if not again.cameras[n].kept_prior]
+    return replace(again, lidars=place_again(carried, again.calibration, lidars, registered, log, {n: again.cameras[n].sigma for n in cameras}))
