@@ -12,7 +12,8 @@ from moisst_ns.datasets.kitti_raw import KittiRawConfig, convert
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.lidar.lidar_instant import place_lidar, place_lidars, trajectory_turn
+from moisst_ns.stages.lidar.lidar_instant import place_lidar
+from moisst_ns.stages.lidar.lidar_placement import place_lidars, trajectory_turn
 from moisst_ns.stages.lidar.lidar_report import stage_sigma
 from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
 
@@ -125,7 +126,8 @@ def test_a_motion_estimate_in_a_turned_frame_gives_the_trajectorys_turn(drive):
 def test_a_parameter_placed_at_the_shared_instants_carries_their_sigma_and_the_time_offsets_along_the_drive():
     """``stage_sigma``: a taken lever-arm component is the placement's sigma with the time offset's sigma times the
     drive's velocity along it (a time offset error moves the placed lever arm along the drive); a taken angle is the
-    placement's; what was not taken keeps the LiDAR-first sigma (the held prior's where it was held)."""
+    placement's; what was not taken keeps the LiDAR-first sigma (the held prior's where it was held), at least the
+    whole difference to the placement where that placed it (two estimates that disagree)."""
     entry = {"observability": [{"sigma": s} for s in (0.01, 0.02, 0.03, 0.001, 0.002, 0.003, 0.004)],
              "held_check": {"sigma_release": [0.0] * 7, "sigma_held": [0.5, 0.5, 0.5, 0.087, 0.0, 0.0, 0.0]},
              "shared_instant": {"taken": ["x", "z", "roll"], "sigma": [0.011, 0.012, 0.013, 0.0014, 0.0015, 0.0016, None],
@@ -133,6 +135,13 @@ def test_a_parameter_placed_at_the_shared_instants_carries_their_sigma_and_the_t
     sigma, source = stage_sigma(entry)
     np.testing.assert_allclose(sigma, [np.hypot(0.011, 0.1 * 0.004), 0.5, np.hypot(0.013, 7.8 * 0.004), 0.0014, 0.002, 0.003, 0.004])
     assert source.endswith("and the shared instants")
+    # pitch placed there 0.6 deg from the motion's but kept at the motion's (not taken): at least their whole difference
+    pitched = np.eye(4)
+    pitched[:3, :3] = Rotation.from_rotvec([0.0, np.deg2rad(0.6), 0.0]).as_matrix()
+    entry["T_ref_sensor"] = np.eye(4).tolist()
+    entry["shared_instant"].update(placed=["x", "z", "roll", "pitch"], T_ref_sensor=pitched.tolist())
+    sigma, _ = stage_sigma(entry)
+    assert sigma[4] == pytest.approx(np.deg2rad(0.6), rel=1e-9) and sigma[5] == 0.003 and sigma[3] == 0.0014
 
 
 def test_an_undetermined_parameter_is_taken_where_the_shared_instants_beat_the_motions_sigma(tmp_path, monkeypatch):
@@ -141,7 +150,7 @@ def test_an_undetermined_parameter_is_taken_where_the_shared_instants_beat_the_m
     along-track lever arm, 10 cm against 1 m); not when the motion's is the smaller, and not without the motion's
     sigma. Exact moves: the taken components change by the placement's, the others not at all."""
     from moisst_ns.datasets.synth import SynthConfig, make_rig
-    from moisst_ns.stages.lidar import lidar_instant, lidar_scans
+    from moisst_ns.stages.lidar import lidar_placement, lidar_scans
     from moisst_ns.stages.lidar.lidar_geometry import Extrinsic
     from moisst_ns.stages.lidar.lidar_instant import InstantPlacement
 
@@ -150,7 +159,7 @@ def test_an_undetermined_parameter_is_taken_where_the_shared_instants_beat_the_m
     T = np.asarray(start.T_ref_sensor["lidar"], dtype=np.float64)
     placement = InstantPlacement(Extrinsic(T[:3, :3], T[:3, 3] + [0.03, 0.04, 0.05], 0.0),
                                  [0.01, 0.02, 0.15] + [np.deg2rad(0.1)] * 3 + [float("nan")], ["x", "y", "roll", "pitch", "yaw"], 500, ["cam"])
-    monkeypatch.setattr(lidar_instant, "place_lidar", lambda *args: replace(placement, taken=[]))
+    monkeypatch.setattr(lidar_placement, "place_lidar", lambda *args: replace(placement, taken=[]))
     monkeypatch.setattr(lidar_scans, "load_scans", lambda *args: None)
     held = [1.0, 1.0, 1.0, 0.17, np.deg2rad(0.01), np.deg2rad(0.01), 0.1]  # x, y, z, roll held at the prior
     for motion, taken in (({"lidar": held}, ["x", "y", "z", "roll"]), ({"lidar": held[:2] + [0.05] + held[3:]}, ["x", "y", "roll"]), ({}, ["x", "y", "roll"])):
@@ -184,7 +193,7 @@ def test_placed_again_against_the_cameras_registered_again(drive):
     then again against the factory cameras: it takes the same parameters, each exactly as a placement against the
     factory cameras from there gives it, keeps the first's turn, and ends within 0.15 deg per angle of the factory
     rotation (0.03 / 0.07 / 0.08 measured), from over 0.3 deg."""
-    from moisst_ns.stages.lidar.lidar_instant import place_again
+    from moisst_ns.stages.lidar.lidar_placement import place_again
 
     rig, truth, start, scans = drive
     cameras = ["image_01", "image_03"]

@@ -344,7 +344,7 @@ class Calibration:
     """Optional per-sensor uncertainty and verdict (``moisst_ns.rig.trust``); absent in older files."""
     trajectory_T_reference: Optional[np.ndarray] = None
     """The reference sensor's pose (4x4, metres) in the frame the rig's trajectory is given in, when a stage found
-    them to differ (``stages.lidar.lidar_instant.trajectory_turn``): ``world_T_ref(t) = trajectory(t) @ this``, and
+    them to differ (``stages.lidar.lidar_placement.trajectory_turn``): ``world_T_ref(t) = trajectory(t) @ this``, and
     every ``T_ref_sensor`` is relative to the reference sensor itself. None (absent in the file): the identity."""
 
     def to_json(self) -> dict:

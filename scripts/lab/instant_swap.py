@@ -20,7 +20,8 @@ import numpy as np
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import PARAMETERS, parameter_difference
-from moisst_ns.stages.lidar.lidar_instant import place_lidar, place_lidars
+from moisst_ns.stages.lidar.lidar_instant import place_lidar
+from moisst_ns.stages.lidar.lidar_placement import place_lidars
 from moisst_ns.stages.lidar.lidar_report import stage_sigma
 from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER

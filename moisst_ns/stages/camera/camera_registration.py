@@ -26,7 +26,8 @@ from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, NoOv
 from moisst_ns.stages.camera.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, convergence_tail, held_back_check, points_per_frame, reference_cost,
                                             resolution_spread, solve, split_half_spread, typical_error_significance)
 from moisst_ns.stages.camera.photometric import CameraFrames, PairSet, Registration, robust_cost
-from moisst_ns.stages.lidar.lidar_instant import InstantPlacement, place_again, place_lidars, trajectory_turn
+from moisst_ns.stages.lidar.lidar_instant import InstantPlacement
+from moisst_ns.stages.lidar.lidar_placement import place_again, place_lidars, trajectory_turn
 from moisst_ns.stages.trust.observability import huber_weights
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
@@ -273,7 +274,7 @@ class CameraStageResult:
     map_note: str = ""
     """Why the map is the features on a rig with a LiDAR (``map_source``), else empty."""
     lidars: Dict[str, InstantPlacement] = field(default_factory=dict)
-    """The LiDARs placed against the registered cameras at the same instants (``lidar_instant.place_lidars``)."""
+    """The LiDARs placed against the registered cameras at the same instants (``lidar_placement.place_lidars``)."""
 
 
 def _prior_kept(name: str, calibration: Calibration, why: str, rig: Optional[Rig] = None) -> CameraResult:

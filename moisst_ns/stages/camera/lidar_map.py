@@ -247,7 +247,7 @@ def map_source(rig: Rig, lidar_undetermined: Optional[Dict[str, Sequence[str]]] 
     moves the whole map by about its prior error, and every camera registered against it inherits that error under a
     sigma that cannot see it (KITTI raw 0048: the Velodyne's along-track lever arm held 50 cm off; image_03 then 27 cm
     off). That stage's depth edges' view may place such a parameter, but only the cameras registered without the LiDAR
-    can check it at the shared instants (``lidar_instant.place_lidars``; the view placed KITTI's Velodyne 33 cm off in
+    can check it at the shared instants (``lidar_placement.place_lidars``; the view placed KITTI's Velodyne 33 cm off in
     x under a sigma of 3 cm from the converter's ``--seed 1`` prior, and image_01 ended 4.4 cm off on its map). The
     reference camera's features, triangulated from its known poses, carry only the trajectory's error: the map where a
     LiDAR is undetermined and the reference sensor is a camera (docs/method.md, "The cameras' map").

@@ -12,7 +12,7 @@ import numpy as np
 
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
-from moisst_ns.rig.trust import PARAMETERS, finite_or_none
+from moisst_ns.rig.trust import PARAMETERS, finite_or_none, parameter_difference
 from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, LidarFirstResult, LidarResult
 from moisst_ns.stages.trust.observability import MIN_EFFECT, UNITS
 
@@ -133,8 +133,10 @@ def stage_sigma(entry: dict):
     """A LiDAR's sigma from its LiDAR-first record (trust order; m, rad, s) and where it comes from: the formal one,
     at least half the split-half difference and the release check's spread where those ran, the prior's sigma for
     a parameter held at the prior (``lidar_first.held_sigma``), and for a parameter placed against the cameras at the
-    same instants (``shared_instant``, ``lidar_instant.place_lidars``) that placement's sigma, its lever arm's with what
-    the time offset's sigma moves it along the drive."""
+    same instants (``shared_instant``, ``lidar_placement.place_lidars``) that placement's sigma, its lever arm's with what
+    the time offset's sigma moves it along the drive; for one placed there but kept at the motion's, at least the whole
+    difference of the two (KITTI raw 0048 seed 2: the OXTS trajectory's turn from image_00 not found, the motion's pitch
+    0.65 deg off under a sigma of 0.13)."""
     sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
     if entry.get("sigma_split_half"):  # the two halves of the drive fitted apart
         sigma, source = list(np.fmax(sigma, [np.nan if v is None else v for v in entry["sigma_split_half"]])), "LiDAR-first formal and split-half"
@@ -145,4 +147,9 @@ def stage_sigma(entry: dict):
     for p in instant.get("taken", []):
         i = PARAMETERS.index(p)
         sigma[i] = float(np.hypot(instant["sigma"][i], instant["along_track"][i] * sigma[6])) if i < 3 else instant["sigma"][i]
-    return sigma, source + (" and the shared instants" if instant.get("taken") else "")
+    kept = [p for p in instant.get("placed", []) if p not in instant.get("taken", [])]
+    if kept:  # placed there, the motion's kept: two estimates of it (in frames that may differ) apart by their whole difference
+        apart = parameter_difference(np.asarray(entry["T_ref_sensor"]), 0.0, np.asarray(instant["T_ref_sensor"]), 0.0)
+        for p in kept:
+            sigma[PARAMETERS.index(p)] = float(max(sigma[PARAMETERS.index(p)], abs(apart[PARAMETERS.index(p)])))
+    return sigma, source + (" and the shared instants" if instant.get("taken") or kept else "")
