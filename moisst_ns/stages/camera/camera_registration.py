@@ -377,8 +377,9 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
                                         note=f"{r.note}; {why}" if r.kept_prior and r.note else why)
             log(f"[camera-registration] {name}: {why}; it keeps its prior")
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
+    scans = {}  # per LiDAR, read once for both placements
     lidars = (place_lidars(rig, out, [n for n in cameras if not results[n].kept_prior], lidar_undetermined or {}, lidar_sigma, log,
-                           {n: results[n].sigma for n in cameras})
+                           {n: results[n].sigma for n in cameras}, scans)
               if why_source and config.estimate_extrinsic and lidar_sigma is not None else {})  # an extrinsic the user holds stays
     result = CameraStageResult(out, {n: results[n] for n in cameras}, len(world), source, why_source, lidars)
     turn = trajectory_turn(lidars, log)
@@ -395,4 +396,4 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         return result
     again.calibration.trajectory_T_reference = turn
     registered = [n for n in cameras if not again.cameras[n].kept_prior]
-    return replace(again, lidars=place_again(carried, again.calibration, lidars, registered, log, {n: again.cameras[n].sigma for n in cameras}))
+    return replace(again, lidars=place_again(carried, again.calibration, lidars, registered, log, {n: again.cameras[n].sigma for n in cameras}, scans))

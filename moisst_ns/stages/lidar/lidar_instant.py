@@ -116,14 +116,15 @@ def shift_axes(baseline: Float[np.ndarray, "3"]) -> Float[np.ndarray, "2 3"]:
     return np.stack([along, axis / max(np.linalg.norm(axis), 1e-9)])
 
 
-def pairs_with_reference(rig: Rig) -> List[str]:
-    """The cameras whose prior puts them ``MIN_BASELINE`` or more from the reference camera: those that may place a
-    LiDAR at the same instants once registered (none when the reference sensor is not a camera)."""
-    ref = rig.sensors[rig.reference_sensor]
-    if ref.type != "camera":
+def pairs_with_reference(rig: Rig, calibration: Optional[Calibration] = None) -> List[str]:
+    """The cameras ``calibration`` (default: the rig's priors) puts ``MIN_BASELINE`` or more from the reference camera:
+    those that may place a LiDAR at the same instants (none when the reference sensor is not a camera)."""
+    if rig.sensors[rig.reference_sensor].type != "camera":
         return []
+    T = (calibration or Calibration.from_rig(rig)).T_ref_sensor
+    ref = np.asarray(T[rig.reference_sensor], dtype=np.float64)
     return [n for n, s in rig.sensors.items() if n != rig.reference_sensor and s.type == "camera"
-            and np.linalg.norm(np.asarray(s.T_ref_sensor)[:3, 3] - np.asarray(ref.T_ref_sensor)[:3, 3]) >= MIN_BASELINE]
+            and np.linalg.norm(np.asarray(T[n], dtype=np.float64)[:3, 3] - ref[:3, 3]) >= MIN_BASELINE]
 
 
 def instant_points(rig: Rig, traj: ReferenceTrajectory, calibration: Calibration, camera: str, pair: int, features: int = 4000,
@@ -261,7 +262,8 @@ def place_lidar(rig: Rig, calibration: Calibration, lidar: str, scans: ScanSet, 
     """
     traj = ReferenceTrajectory.of(rig)
     ref = np.asarray(calibration.T_ref_sensor[rig.reference_sensor], dtype=np.float64)
-    usable = [c for c in cameras if np.linalg.norm(np.asarray(calibration.T_ref_sensor[c])[:3, 3] - ref[:3, 3]) >= MIN_BASELINE]
+    far = pairs_with_reference(rig, calibration)
+    usable = [c for c in cameras if c in far]
     found = {c: instant_points(rig, traj, calibration, c, 0) for c in usable}
     usable = [c for c in usable if sum(len(p.ray) for p in found[c])]
     sets = [replace(p, pair=i) for i, c in enumerate(usable) for p in found[c]]

@@ -18,12 +18,13 @@ from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import PARAMETERS, parameter_difference
 from moisst_ns.stages.lidar.lidar_geometry import Extrinsic
 from moisst_ns.stages.lidar.lidar_instant import MIN_BASELINE, MIN_ROWS, InstantPlacement, place_lidar
+from moisst_ns.stages.lidar.lidar_scans import ScanSet
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER
 
 
 def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], undetermined: Dict[str, Sequence[str]],
                  motion_sigma: Dict[str, Sequence[float]], log: Callable[[str], None] = print,
-                 camera_sigma: Optional[Dict[str, Sequence[float]]] = None) -> Dict[str, InstantPlacement]:
+                 camera_sigma: Optional[Dict[str, Sequence[float]]] = None, scans: Optional[Dict[str, ScanSet]] = None) -> Dict[str, InstantPlacement]:
     """Every LiDAR whose scans' motion left parameters undetermined, against the registered ``cameras`` at the same
     instants; ``calibration`` takes, per LiDAR, the parameters its scans' motion did not determine, placed here or with
     a sigma below that stage's (its prior's where it held them: KITTI raw 0048's along-track lever arm, 10 cm against
@@ -43,18 +44,17 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
         motion_sigma: per LiDAR, the LiDAR-first stage's sigma (an empty dict: only the undetermined are taken).
         log: where progress lines go.
         camera_sigma: per camera, its registration's sigma (``place_lidar``).
+        scans: per LiDAR, its scans once read (filled here; ``place_again`` reads them from it too).
 
     Returns:
         Per LiDAR placed, the placement with ``taken`` set.
     """
-    from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
-
+    scans = {} if scans is None else scans
     out = {}
     for lidar, unknown in undetermined.items():
         if not unknown or not cameras:
             continue
-        scans = load_scans(rig, lidar, ReferenceTrajectory.of(rig), LidarFirstConfig(), log)
-        found = place_lidar(rig, calibration, lidar, scans, cameras, log, camera_sigma)
+        found = place_lidar(rig, calibration, lidar, _scans(rig, lidar, scans, log), cameras, log, camera_sigma)
         if found is None:
             log(f"[camera-registration] {lidar}: no pair of cameras {MIN_BASELINE} m apart puts {MIN_ROWS} points on its scans at the same "
                 "instants: nothing placed")
@@ -82,6 +82,16 @@ def place_lidars(rig: Rig, calibration: Calibration, cameras: Sequence[str], und
     return out
 
 
+def _scans(rig: Rig, lidar: str, read: Dict[str, ScanSet], log: Callable[[str], None]) -> ScanSet:
+    """``lidar``'s scans (``lidar_scans.load_scans``), read once into ``read`` (they depend on the trajectory only
+    through its time span, which carrying it does not change)."""
+    from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
+
+    if lidar not in read:
+        read[lidar] = load_scans(rig, lidar, ReferenceTrajectory.of(rig), LidarFirstConfig(), log)
+    return read[lidar]
+
+
 def _take(calibration: Calibration, lidar: str, found: InstantPlacement) -> None:
     """``calibration``'s ``lidar`` takes the parameters ``found.taken`` from the placement (in place)."""
     T = np.asarray(calibration.T_ref_sensor[lidar], dtype=np.float64)
@@ -94,7 +104,8 @@ def _take(calibration: Calibration, lidar: str, found: InstantPlacement) -> None
 
 
 def place_again(rig: Rig, calibration: Calibration, placements: Dict[str, InstantPlacement], cameras: Sequence[str],
-                log: Callable[[str], None] = print, camera_sigma: Optional[Dict[str, Sequence[float]]] = None) -> Dict[str, InstantPlacement]:
+                log: Callable[[str], None] = print, camera_sigma: Optional[Dict[str, Sequence[float]]] = None,
+                scans: Optional[Dict[str, ScanSet]] = None) -> Dict[str, InstantPlacement]:
     """The LiDARs of ``place_lidars`` placed once more at the same instants, against the cameras registered again on the
     trajectory carried to the reference camera (the cameras' rotation errors pass into the placement through the stereo
     geometry: KITTI raw 0048's Velodyne yaw -0.29 deg against the first registration's cameras, -0.11 against the
@@ -108,18 +119,17 @@ def place_again(rig: Rig, calibration: Calibration, placements: Dict[str, Instan
         cameras: the cameras registered (not kept at their priors).
         log: where progress lines go.
         camera_sigma: per camera, its registration's sigma (``place_lidar``).
+        scans: per LiDAR, its scans as ``place_lidars`` read them (read here where absent).
 
     Returns:
         Per LiDAR, the new placement (the first where nothing was taken or no pair places it now).
     """
-    from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
-
+    scans = {} if scans is None else scans
     out = dict(placements)
     for lidar, first in placements.items():
         if not first.taken or not cameras:
             continue
-        scans = load_scans(rig, lidar, ReferenceTrajectory.of(rig), LidarFirstConfig(), log)
-        found = place_lidar(rig, calibration, lidar, scans, cameras, log, camera_sigma)
+        found = place_lidar(rig, calibration, lidar, _scans(rig, lidar, scans, log), cameras, log, camera_sigma)
         if found is None:
             log(f"[camera-registration] {lidar}: against the cameras registered again, nothing placed: the first placement stands")
             continue
