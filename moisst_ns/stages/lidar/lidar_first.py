@@ -163,6 +163,7 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
         raise LidarFirstError("estimate_extrinsic and estimate_time_offset are both off: nothing to calibrate")
     where = f"{rig.root / 'rig.json'}: sensors.{sensor}"
     ext, history = _fit(traj, scans, pairs, baselines, prior, prior, free, config, log, where)
+    unheld = ext if len(free) == 7 else None  # every parameter free from the prior: the release check's fit, if one is held
     fine = replace(config, radius_start=config.radius_end, start_baseline=float(baselines.max()) if len(baselines) else config.start_baseline)
     held_apart: List[int] = []
     while True:  # the fit, then (hold_split_half, every parameter estimated) again with what the halves disagree on held
@@ -198,7 +199,10 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
         ext, searched = _place_by_view(sensor, traj, scans, pairs, baselines, ext, prior, free, held_apart, view, observability, split, fine, log, where)
     held = None
     if len(free) < 7:
-        released, _ = _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where)
+        # the first fit already freed every parameter from the prior, where the held ones stay: it is the released fit
+        # (KITTI raw 0048: the same to the printed digit, a quarter of the stage); after the view placed some, fit again
+        released = unheld if unheld is not None and searched is None else \
+            _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where)[0]
         held = release_check(ext, released, free, observability, expected=held_apart)
         if searched is not None:  # a motion-only release cannot measure what the view placed
             held["sigma_release"] = [0.0 if j in searched.accepted else v for v, j in zip(held["sigma_release"], JACOBIAN_ORDER)]
@@ -243,7 +247,7 @@ def release_check(estimate: Extrinsic, released: Extrinsic, free: np.ndarray, ob
 
     Args:
         estimate: the fit with some parameters held at the prior.
-        released: the fit from ``estimate`` with every parameter free.
+        released: a fit with every parameter free (from ``estimate``, or the stage's first fit from the prior).
         free: the indices (Jacobian order) the held fit estimated.
         observability: of the held fit (its formal sigma per parameter).
         expected: held parameters (Jacobian order) expected to move when released: held because the data hardly
