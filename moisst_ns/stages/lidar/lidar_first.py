@@ -200,7 +200,7 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     held = None
     if len(free) < 7:
         # the first fit already freed every parameter from the prior, where the held ones stay: it is the released fit
-        # (KITTI raw 0048: the same to the printed digit, a quarter of the stage); after the view placed some, fit again
+        # (KITTI raw 0048: the same to 1e-6, the stage 260 -> 213 s); after the view placed some, fit again
         released = unheld if unheld is not None and searched is None else \
             _fit(traj, scans, pairs, baselines, ext, prior, np.arange(7), config, lambda line: log(line + " (released)"), where)[0]
         held = release_check(ext, released, free, observability, expected=held_apart)
