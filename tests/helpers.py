@@ -3,6 +3,14 @@
 import hashlib
 from pathlib import Path
 
+import pytest
+
+KITTI_RAW = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti-raw-2011_09_26_drive_0048"
+"""The shared real drive (../shared/data/README.md); tests that need it are marked ``needs_kitti_raw``."""
+KITTI_DRIVE = "2011_09_26_drive_0048_sync"
+needs_kitti_raw = pytest.mark.skipif(not (KITTI_RAW / KITTI_DRIVE).is_dir(),
+                                     reason=f"KITTI raw drive 0048 not found at {KITTI_RAW} (see ../shared/data/README.md)")
+
 
 def tree_hash(folder: Path) -> str:
     """One digest of every file's relative path and bytes under ``folder`` (to prove a dataset was not written)."""

@@ -19,25 +19,22 @@ from moisst_ns.datasets.kitti360_io import read_key_values
 from moisst_ns.datasets.kitti_raw import KittiRawConfig, KittiRawError, convert, oxts_poses, read_timestamps, sweep_times
 from moisst_ns.rig.format import load_calibration, load_lidar_scan, load_rig, load_tum
 
-from helpers import tree_hash
+from helpers import KITTI_DRIVE, KITTI_RAW, needs_kitti_raw, tree_hash
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti-raw-2011_09_26_drive_0048"
-DRIVE = "2011_09_26_drive_0048_sync"
-SYNC = DATA / DRIVE / "2011_09_26" / DRIVE
-CALIB = DATA / "2011_09_26_calib" / "2011_09_26"
+SYNC = KITTI_RAW / KITTI_DRIVE / "2011_09_26" / KITTI_DRIVE
+CALIB = KITTI_RAW / "2011_09_26_calib" / "2011_09_26"
 SENSOR_DIRS = ("image_00", "image_01", "image_02", "image_03", "velodyne_points", "oxts")
-needs_data = pytest.mark.skipif(not SYNC.is_dir(), reason=f"KITTI raw drive 0048 not found at {DATA} (see ../shared/data/README.md)")
 
 
 @pytest.fixture(scope="module")
 def data_hash():
-    return tree_hash(DATA)
+    return tree_hash(KITTI_RAW)
 
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory, data_hash):
     """Frames 0-3, every sensor, paper-perturbed priors."""
-    config = KittiRawConfig(root=DATA, drive=DRIVE, out=tmp_path_factory.mktemp("raw") / "rig", first_frame=0, last_frame=3,
+    config = KittiRawConfig(root=KITTI_RAW, drive=KITTI_DRIVE, out=tmp_path_factory.mktemp("raw") / "rig", first_frame=0, last_frame=3,
                             downscale=4, points_per_scan=5000, perturb="paper", seed=0)
     return convert(config)
 
@@ -45,7 +42,7 @@ def small(tmp_path_factory, data_hash):
 @pytest.fixture(scope="module")
 def full(tmp_path_factory, data_hash):
     """The whole drive: image_00 at full size, every Velodyne point, factory calibration."""
-    config = KittiRawConfig(root=DATA, drive=DRIVE, out=tmp_path_factory.mktemp("raw") / "full", cameras=("image_00",))
+    config = KittiRawConfig(root=KITTI_RAW, drive=KITTI_DRIVE, out=tmp_path_factory.mktemp("raw") / "full", cameras=("image_00",))
     return convert(config)
 
 
@@ -78,7 +75,7 @@ def test_oxts_poses_follow_the_devkit():
     np.testing.assert_allclose(poses[1, :3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
 
 
-@needs_data
+@needs_kitti_raw
 def test_rig_sensors_frames_and_factory_calibration(small):
     rig, truth = load_rig(small), load_calibration(small / "ground_truth.json")
     assert rig.reference_sensor == "image_00"
@@ -101,7 +98,7 @@ def test_rig_sensors_frames_and_factory_calibration(small):
     assert intr["fl_x"] == pytest.approx(P[0, 0] / 4) and intr["cx"] == pytest.approx((P[0, 2] + 0.5) / 4)
 
 
-@needs_data
+@needs_kitti_raw
 def test_trigger_stamps_and_per_point_times(small):
     rig = load_rig(small)
     meta = json.loads((small / "rig.json").read_text())["metadata"]
@@ -119,7 +116,7 @@ def test_trigger_stamps_and_per_point_times(small):
         np.testing.assert_allclose(times, -np.arctan2(points[:, 1], points[:, 0]) / (2 * np.pi) * (end[k] - start[k]) * 1e-9, atol=1e-9)
 
 
-@needs_data
+@needs_kitti_raw
 def test_reference_trajectory_is_the_oxts_carried_to_camera_0(full):
     stamps, positions, quats = load_tum(full / "reference_poses.txt")
     oxts = sorted((SYNC / "oxts" / "data").glob("*.txt"))
@@ -167,7 +164,7 @@ def _placed_scans(rig, clockwise: bool):
     return out
 
 
-@needs_data
+@needs_kitti_raw
 def test_spin_direction_is_clockwise_from_the_data(full):
     """Consecutive scans placed with clockwise per-point times agree better than with counter-clockwise ones.
 
@@ -193,7 +190,7 @@ def test_spin_direction_is_clockwise_from_the_data(full):
     assert (medians[True] < medians[False]).sum() >= 14, medians
 
 
-@needs_data
+@needs_kitti_raw
 def test_lidar_depth_edges_land_on_image_edges_at_the_factory_calibration(full, small):
     """Velodyne depth edges (range jumps > 1 m along a ring, the near side, < 25 m) projected into image_00 of the same
     frame: their mean distance to the nearest Canny edge, relative to that of all projected points, is far lower at the
@@ -232,20 +229,20 @@ def test_lidar_depth_edges_land_on_image_edges_at_the_factory_calibration(full, 
 
 
 def _pykitti_tree(base: Path) -> Path:
-    """ROOT/DATE/calib_*.txt (copies) and ROOT/DATE/DRIVE/<sensor> (links to the shared data's folders)."""
+    """ROOT/DATE/calib_*.txt (copies) and ROOT/DATE/KITTI_DRIVE/<sensor> (links to the shared data's folders)."""
     day = base / "2011_09_26"
-    (day / DRIVE).mkdir(parents=True)
+    (day / KITTI_DRIVE).mkdir(parents=True)
     for calib in CALIB.glob("calib_*.txt"):
         (day / calib.name).write_bytes(calib.read_bytes())
     for name in SENSOR_DIRS:
-        os.symlink(SYNC / name, day / DRIVE / name)
+        os.symlink(SYNC / name, day / KITTI_DRIVE / name)
     return base
 
 
-@needs_data
+@needs_kitti_raw
 def test_pykitti_layout_gives_the_same_rig(tmp_path, small):
     root = _pykitti_tree(tmp_path / "kitti")
-    out = convert(KittiRawConfig(root=root, drive=DRIVE, out=tmp_path / "rig", first_frame=0, last_frame=3, downscale=4,
+    out = convert(KittiRawConfig(root=root, drive=KITTI_DRIVE, out=tmp_path / "rig", first_frame=0, last_frame=3, downscale=4,
                                  points_per_scan=5000, perturb="paper", seed=0))
     mine, ref = json.loads((out / "rig.json").read_text()), json.loads((small / "rig.json").read_text())
     assert mine["metadata"]["layout"] == "pykitti" and ref["metadata"]["layout"] == "download"
@@ -255,9 +252,9 @@ def test_pykitti_layout_gives_the_same_rig(tmp_path, small):
                                   np.load(small / "lidar/velodyne/0000000002.npz")["points"])
 
 
-@needs_data
+@needs_kitti_raw
 def test_recorded_stamps_are_each_sensors_own_and_rot10_priors(tmp_path):
-    out = convert(KittiRawConfig(root=DATA, drive=DRIVE, out=tmp_path / "rig", first_frame=5, last_frame=6, downscale=4,
+    out = convert(KittiRawConfig(root=KITTI_RAW, drive=KITTI_DRIVE, out=tmp_path / "rig", first_frame=5, last_frame=6, downscale=4,
                                  cameras=("image_02",), lidar=False, stamps="recorded", perturb="rot10"))
     rig, truth = load_rig(out), load_calibration(out / "ground_truth.json")
     assert sorted(rig.sensors) == ["image_00", "image_02"]
@@ -272,14 +269,14 @@ def test_recorded_stamps_are_each_sensors_own_and_rot10_priors(tmp_path):
     assert Image.open(out / rig.frames_of("image_00")[0].file_path).mode == "RGB"  # grey camera written as 3 channels
 
 
-@needs_data
+@needs_kitti_raw
 @pytest.mark.parametrize(
     "edit, overrides, file_part, message",
     [
         (lambda r: (r / "2011_09_26" / "calib_velo_to_cam.txt").unlink(), {}, "calib_velo_to_cam.txt", "not found"),
         (lambda r: (r / "2011_09_26" / "calib_imu_to_velo.txt").write_text("R: 1 0 0 0 1 0 0 0 1\nT: 0 0\n"), {},
          "calib_imu_to_velo.txt: T", "expected 3 numbers"),
-        (lambda r: (r / "2011_09_26" / DRIVE / "image_03").unlink(), {}, "image_03/timestamps.txt", "not found"),
+        (lambda r: (r / "2011_09_26" / KITTI_DRIVE / "image_03").unlink(), {}, "image_03/timestamps.txt", "not found"),
         (lambda r: None, {"cameras": ("image_00", "image_07")}, "--cameras", "unknown camera 'image_07'"),
         (lambda r: None, {"last_frame": 22}, "image_00/timestamps.txt: frame count", "frame 22 requested"),
         (lambda r: None, {"drive": "2011_09_26_drive_0099_sync"}, "drive folder", "not found"),
@@ -289,7 +286,7 @@ def test_recorded_stamps_are_each_sensors_own_and_rot10_priors(tmp_path):
 def test_bad_input_gets_one_line_naming_the_file(tmp_path, edit, overrides, file_part, message):
     root = _pykitti_tree(tmp_path / "kitti")
     edit(root)
-    config = KittiRawConfig(root=root, drive=DRIVE, out=tmp_path / "rig", downscale=4, points_per_scan=100)
+    config = KittiRawConfig(root=root, drive=KITTI_DRIVE, out=tmp_path / "rig", downscale=4, points_per_scan=100)
     for key, value in overrides.items():
         setattr(config, key, value)
     with pytest.raises(KittiRawError) as err:
@@ -299,18 +296,18 @@ def test_bad_input_gets_one_line_naming_the_file(tmp_path, edit, overrides, file
     assert not (tmp_path / "rig").exists()
 
 
-@needs_data
+@needs_kitti_raw
 def test_cli_error_is_one_line(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "moisst_ns.cli.kitti_raw_to_rig", str(DATA), DRIVE, "--out", str(tmp_path / "o"),
+    proc = subprocess.run([sys.executable, "-m", "moisst_ns.cli.kitti_raw_to_rig", str(KITTI_RAW), KITTI_DRIVE, "--out", str(tmp_path / "o"),
                            "--cameras", "image_09"], capture_output=True, text=True)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("moisst-kitti-raw-to-rig: error:") and "image_09" in lines[0], proc.stderr
 
 
-@needs_data
+@needs_kitti_raw
 def test_nothing_is_written_into_the_dataset(data_hash, small, full, tmp_path):
     with pytest.raises(KittiRawError, match="must not be inside the KITTI raw folder"):
-        convert(KittiRawConfig(root=DATA, drive=DRIVE, out=DATA / "rig", last_frame=0))
-    assert not (DATA / "rig").exists()
-    assert tree_hash(DATA) == data_hash
+        convert(KittiRawConfig(root=KITTI_RAW, drive=KITTI_DRIVE, out=KITTI_RAW / "rig", last_frame=0))
+    assert not (KITTI_RAW / "rig").exists()
+    assert tree_hash(KITTI_RAW) == data_hash

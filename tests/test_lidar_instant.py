@@ -2,7 +2,6 @@
 KITTI raw drive 0048 (skipped without ../shared/data), and the sigma a LiDAR's record then carries."""
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,9 +16,7 @@ from moisst_ns.stages.lidar.lidar_placement import place_lidars, trajectory_turn
 from moisst_ns.stages.lidar.lidar_report import stage_sigma
 from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti-raw-2011_09_26_drive_0048"
-DRIVE = "2011_09_26_drive_0048_sync"
-needs_data = pytest.mark.skipif(not (DATA / DRIVE).is_dir(), reason=f"KITTI raw drive 0048 not found at {DATA} (see ../shared/data/README.md)")
+from helpers import KITTI_DRIVE, KITTI_RAW, needs_kitti_raw
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +24,7 @@ def drive(tmp_path_factory):
     """The whole drive, the stereo pairs image_00/01 and image_00/03 and the Velodyne, images halved, paper priors;
     the cameras at the factory calibration, the Velodyne at the prior's rotation and lever arm with the factory's time
     offset (which the shared instant cannot tell from its along-track lever arm on this drive)."""
-    config = KittiRawConfig(root=DATA, drive=DRIVE, out=tmp_path_factory.mktemp("raw") / "rig", cameras=("image_01", "image_03"),
+    config = KittiRawConfig(root=KITTI_RAW, drive=KITTI_DRIVE, out=tmp_path_factory.mktemp("raw") / "rig", cameras=("image_01", "image_03"),
                             downscale=2, points_per_scan=60000, perturb="paper", seed=0)
     rig = load_rig(convert(config))
     truth = load_calibration(rig.root / "ground_truth.json")
@@ -37,7 +34,7 @@ def drive(tmp_path_factory):
     return rig, truth, start, scans
 
 
-@needs_data
+@needs_kitti_raw
 def test_the_stereo_cameras_place_the_velodyne_the_drive_cannot(drive):
     """From 50 cm and 5 deg off on every axis (86.6 cm / 8.8 deg), the Velodyne ends within 6 cm per axis and 0.2 deg
     per angle of the factory calibration (itself good to a few centimetres): the lever arm and the roll that this
@@ -53,7 +50,7 @@ def test_the_stereo_cameras_place_the_velodyne_the_drive_cannot(drive):
     print("error", error, "shifts", placed.shifts)
 
 
-@needs_data
+@needs_kitti_raw
 def test_a_stereo_camera_off_along_the_drive_does_not_tilt_the_velodyne(drive):
     """Both stereo cameras 2 cm behind their factory position at the same instant (what the camera stage's along-track
     lever arm and time offset trade leaves: its depth error grows across the image and tilts the road by ~0.3 deg): the
@@ -73,7 +70,7 @@ def test_a_stereo_camera_off_along_the_drive_does_not_tilt_the_velodyne(drive):
     assert np.all(np.abs(shifts[:, 1] - 0.02) < 0.008), shifts
 
 
-@needs_data
+@needs_kitti_raw
 def test_only_what_the_motion_left_undetermined_is_taken_without_its_sigma(drive):
     """Without the LiDAR-first stage's sigma, a LiDAR takes from the shared instants only the parameters that stage
     left undetermined: the lever arm and the roll move, the pitch and the yaw stay exactly."""
@@ -87,7 +84,7 @@ def test_only_what_the_motion_left_undetermined_is_taken_without_its_sigma(drive
     assert calibration.time_offset["velodyne"] == start.time_offset["velodyne"]
 
 
-@needs_data
+@needs_kitti_raw
 def test_a_motion_estimate_many_sigma_away_hands_over_every_placed_parameter(drive):
     """Where a parameter the motion determined lies more than 3 combined sigma from the shared instants' (here the
     prior's pitch and yaw, 5 deg off, given a motion sigma of 0.01 deg), the two are in different frames: the LiDAR takes
@@ -101,7 +98,7 @@ def test_a_motion_estimate_many_sigma_away_hands_over_every_placed_parameter(dri
     assert np.all(np.rad2deg(error[3:6]) < 0.3), np.rad2deg(error[3:6])
 
 
-@needs_data
+@needs_kitti_raw
 def test_a_motion_estimate_in_a_turned_frame_gives_the_trajectorys_turn(drive):
     """A motion estimate made in a trajectory frame turned by W from image_00 (``R_motion = W R_factory``; W 1.0 and
     -0.8 deg about image_00's x and y) with a tight motion sigma on pitch and yaw: the placement recovers W about the
@@ -186,7 +183,7 @@ def test_the_cameras_that_may_pair_with_the_reference_camera(tmp_path):
     assert pairs_with_reference(replace(rig, reference_sensor="lidar")) == []
 
 
-@needs_data
+@needs_kitti_raw
 def test_placed_again_against_the_cameras_registered_again(drive):
     """``place_again``: the Velodyne placed first against stereo cameras turned 0.1 deg about their vertical axis
     (rotation errors of a first registration pass into the placement through the stereo geometry: 0.36 deg in pitch),

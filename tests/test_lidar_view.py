@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import re
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,9 +28,7 @@ from moisst_ns.stages.lidar.lidar_edges import JUMP, MAX_RING_GAP_DEG, NEIGHBOUR
 from moisst_ns.stages.lidar.lidar_view import GRID, MAX_DISTANCE, REFINEMENTS, edge_distance, search_held, view_residuals
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, TEST_STEPS
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti-raw-2011_09_26_drive_0048"
-DRIVE = "2011_09_26_drive_0048_sync"
-needs_data = pytest.mark.skipif(not (DATA / DRIVE).is_dir(), reason=f"KITTI raw drive 0048 not found at {DATA} (see ../shared/data/README.md)")
+from helpers import KITTI_DRIVE, KITTI_RAW, needs_kitti_raw
 
 
 def extrinsic_of(T, time_offset) -> Extrinsic:
@@ -335,7 +332,7 @@ def kitti_view(tmp_path_factory, last_frame):
     view of image_00."""
     from moisst_ns.datasets.kitti_raw import KittiRawConfig, convert
 
-    out = convert(KittiRawConfig(root=DATA, drive=DRIVE, out=tmp_path_factory.mktemp("kitti_view") / "rig", first_frame=0, last_frame=last_frame,
+    out = convert(KittiRawConfig(root=KITTI_RAW, drive=KITTI_DRIVE, out=tmp_path_factory.mktemp("kitti_view") / "rig", first_frame=0, last_frame=last_frame,
                                  downscale=2, points_per_scan=60000, perturb="paper"))
     rig = load_rig(out)
     truth = load_calibration(out / "ground_truth.json")
@@ -365,7 +362,7 @@ def summary(d):
     return f"{len(d)} rows, median {np.median(d):.2f} px, mean {d.mean():.2f} px, capped {np.mean(d >= MAX_DISTANCE):.0%}"
 
 
-@needs_data
+@needs_kitti_raw
 def test_kitti_depth_edges_fall_on_image_edges_at_the_factory_calibration(kitti):
     """The median distance of the Velodyne's depth edges to image_00's edges is small at the factory calibration and
     far larger at the paper-perturbed prior (50 cm, 5 deg, 100 ms; measured 2.96 px against 7.51 px)."""
@@ -376,7 +373,7 @@ def test_kitti_depth_edges_fall_on_image_edges_at_the_factory_calibration(kitti)
     assert np.median(prior) > 2.0 * np.median(truth)
 
 
-@needs_data
+@needs_kitti_raw
 @pytest.mark.parametrize("name, increment", [
     ("lever arm 20 cm down", np.r_[0, 0, 0, 0, 0.2, 0, 0]),  # reference frame y: down
     ("lever arm 20 cm up", np.r_[0, 0, 0, 0, -0.2, 0, 0]),
@@ -393,7 +390,7 @@ def test_kitti_edge_distances_see_the_vertical_lever_arm_and_the_roll(kitti, nam
     assert np.median(moved) > 1.25 * np.median(truth)
 
 
-@needs_data
+@needs_kitti_raw
 def test_kitti_view_search_places_the_roll_and_the_vertical_lever_arm_and_refuses_the_along_track(tmp_path_factory):
     """What the LiDAR stage holds on this straight drive (the halves disagree on roll, vertical y and along-track z),
     moved as the stage left them (5.2 deg, 50 cm, 50 cm), the whole drive: the search places the roll within 1 deg and
@@ -407,7 +404,7 @@ def test_kitti_view_search_places_the_roll_and_the_vertical_lever_arm_and_refuse
     assert found.increment[5] == 0.0 and abs(error[5] - 0.5) < 1e-9
 
 
-@needs_data
+@needs_kitti_raw
 def test_kitti_view_search_on_four_frames_places_nothing(kitti):
     """On 4 frames of the drive the same start is refused whole: the vertical lever arm's minimum moves by about
     half a metre as the along-track component (which the view leaves undetermined) crosses the grid, so placing

@@ -73,8 +73,8 @@ class CameraRegistrationConfig:
     each other at their known poses: the scene's and images' own inconsistency) is a wrong minimum and keeps the prior
     (measured ratios: docs/lab/2026-11-23-camera-registration.md, "Cameras against the LiDAR map")."""
     max_split_half: float = 2.0
-    """A fit whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms) on any parameter is
-    not determined by the data and keeps the prior (measured: docs/lab/2026-11-23-camera-registration.md)."""
+    """A fit whose halves lie apart (half their difference, ``split_half_spread``) by more than this many typical prior
+    errors (10 cm, 1 deg, 10 ms) on any parameter is not determined by the data and keeps the prior (measured: docs/lab/2026-11-23-camera-registration.md)."""
     min_significance: float = 1.0
     """A fit whose held-back cost rises by less than this many times three standard errors over the frames when one
     correction is stepped by a typical prior error (10 cm, 1 deg, 10 ms; ``typical_error_significance``) keeps the

@@ -146,26 +146,34 @@ def subset(pairs: PairSet, rows: np.ndarray) -> PairSet:
 
 
 def split_half_spread(problem: Registration, theta: np.ndarray, active: np.ndarray, factor: int,
-                      config) -> Float[np.ndarray, "7"]:
-    """Half the difference between the estimates from the first and the second half of the drive.
+                      config) -> Tuple[Float[np.ndarray, "7"], Float[np.ndarray, "7"]]:
+    """How far the estimates from the first and the second half of the drive lie apart, and from the whole's.
 
-    Each half (the camera's frames split in time) is solved from ``theta`` on fresh pairs. For two independent
-    halves ``|a - b| / 2`` estimates the standard deviation of the whole drive's estimate, and unlike the formal sigma
-    it also sees what changes along the drive or what the drive leaves undetermined (a bias of one stretch of road, of
-    one kind of motion; a lever arm a short, nearly straight drive hardly shows). The LiDAR-first stage's
+    Each half (the camera's frames split in time) is solved from ``theta`` on fresh pairs. Unlike the formal sigma the
+    halves also see what changes along the drive or what the drive leaves undetermined (a bias of one stretch of road,
+    of one kind of motion; a lever arm a short, nearly straight drive hardly shows). For two independent, equally
+    informative halves the whole drive's estimate is their mean, and ``|a - b| / 2``, each half's distance from it,
+    estimates its standard deviation. Where one stretch carries the fit the whole is that half's estimate and the other
+    half's distance from it, up to ``|a - b|``, is what the drive says (KITTI raw 0048's image_02: a van of the first
+    half's frames carries its lateral lever arm, the halves lie 0.00 and 2.83 cm from the whole, the error is 4.52 cm;
+    docs/lab/2026-11-29-movers.md). So sigma takes the farther half's distance from the whole (never less than half
+    the difference), the "halves disagree" guard half the difference. The LiDAR-first stage's
     ``lidar_first.split_half_spread`` is the same test.
 
     Returns:
-        Per correction (rad, rad, rad, m, m, m, s); inf where a half has fewer than 50 pairs, 0 for inactive ones.
+        ``(apart, sigma)`` per correction (rad, rad, rad, m, m, m, s): half the difference of the halves, and the
+        farther half's distance from ``theta``; both inf where a half has fewer than 50 pairs, 0 for inactive ones.
     """
     pairs = problem.pairs(theta, factor, points_per_frame(config, factor, factor == min(problem.camera.levels)))
     half = len(problem.camera.stamps) // 2
     estimates = []
     for rows in (pairs.frame_a < half, pairs.frame_a >= half):
         if rows.sum() < 50:
-            return np.where(active, np.inf, 0.0)
+            unknown = np.where(active, np.inf, 0.0)
+            return unknown, unknown
         estimates.append(solve(problem, theta, active, subset(pairs, rows), factor, config)[0])
-    return np.abs(estimates[0] - estimates[1]) / 2
+    first, second = estimates
+    return np.abs(first - second) / 2, np.maximum(np.abs(first - theta), np.abs(second - theta))
 
 
 def resolution_spread(level_end: Dict[int, np.ndarray]) -> Float[np.ndarray, "7"]:

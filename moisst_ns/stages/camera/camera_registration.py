@@ -31,6 +31,8 @@ from moisst_ns.stages.lidar.lidar_placement import place_again, place_lidars, tr
 from moisst_ns.stages.trust.observability import huber_weights
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
+START = FeatureStartConfig()  # the feature start's settings
+
 
 @dataclass
 class CameraResult:
@@ -63,7 +65,8 @@ class CameraResult:
     cost_ratio: float = 0.0
     """Final cost over the reference camera's own (``reference_cost``); 0 when the reference is not a camera."""
     sigma_split: List[float] = field(default_factory=list)
-    """The split-half part of ``sigma`` (``split_half_spread``; zeros when ``split_half`` is off)."""
+    """The split-half part of ``sigma``: the farther half's distance from the whole (``split_half_spread``; zeros when
+    ``split_half`` is off)."""
     start: str = "prior"
     """Where the photometric solve started: ``prior`` or ``features`` (``feature_start``), with the reason."""
     significance: List[float] = field(default_factory=list)
@@ -115,8 +118,7 @@ def _descend(problem: Registration, config: CameraRegistrationConfig, log: Calla
     Jacobian, valid, pairs) of the last solve, {level factor: the corrections at the end of that level})``; ``so_far``:
     such a tuple of the coarser levels, which this call continues."""
     name = problem.camera.sensor
-    theta = np.r_[theta, np.zeros(len(_active(config)) - len(theta))]
-    theta = np.where(_active(config), theta, 0.0)
+    theta = np.where(_active(config), np.r_[theta, np.zeros(len(_active(config)) - len(theta))], 0.0)
     history, last, level_end = ([], None, {}) if so_far is None else (list(so_far[1]), so_far[2], dict(so_far[3]))
     start = time.perf_counter() - (history[-1]["elapsed_s"] if history else 0.0)
     for factor in sorted(problem.camera.levels, reverse=True) if factors is None else factors:
@@ -155,7 +157,7 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
     if active.any():
         weights = np.sqrt(huber_weights(res[ok], config.huber))
         formal[active] = least_squares_sigma(jac[ok][:, active] * weights[:, None], res[ok] * weights, pairs.frame_a[ok]).sigma
-    spread = split_half_spread(problem, theta, active, finest, config) if config.split_half and active.any() else np.zeros(len(active))
+    apart, spread = split_half_spread(problem, theta, active, finest, config) if config.split_half and active.any() else (np.zeros(len(active)),) * 2
     resolution = resolution_spread(level_end)
     tail = convergence_tail([h["correction"] for h in history])
     if config.estimate_readout:  # the readout's tail from the levels that fit it
@@ -163,7 +165,7 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
     cost_pri, cost_est, better = held_back_check(problem, theta, finest, config)
     at_bound = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (np.abs(theta[:7]) >= 0.999 * bounds(config)))]
     ratio = history[-1]["cost"] / floor_cost if floor_cost else 0.0
-    undetermined = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (spread[:7] > config.max_split_half * TYPICAL_ERROR))]
+    undetermined = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (apart[:7] > config.max_split_half * TYPICAL_ERROR))]
     significance = typical_error_significance(problem, theta, active, finest, config) if config.min_significance > 0 else np.full(7, np.inf)
     blind = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (significance < config.min_significance))]
     kept = not better or bool(at_bound) or ratio > config.max_cost_ratio or bool(undetermined) or bool(blind)
@@ -251,9 +253,8 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
         return _guarded(problem, config, floor_cost, descent, (_started(initial), "prior")[k], time.perf_counter() - start)
     descents = [(_descend(problem, config, log, c[0], factors[-1:], c), begun) for c, begun in zip(coarse, (_started(initial), "prior"))]
     costs = [d[1][-1]["cost"] for d, _ in descents]
-    order = np.argsort(costs, kind="stable")
     log(f"[camera-registration] {problem.camera.sensor}: final cost {costs[0]:.4f} from the features, {costs[1]:.4f} from the prior")
-    for k in order:
+    for k in np.argsort(costs, kind="stable"):
         result = _guarded(problem, config, floor_cost, descents[k][0], descents[k][1], time.perf_counter() - start)
         if not result.kept_prior:
             break
@@ -279,8 +280,7 @@ class CameraStageResult:
 
 def _prior_kept(name: str, calibration: Calibration, why: str, rig: Optional[Rig] = None) -> CameraResult:
     """The result of a camera the stage does not fit: its prior, sigma inf, ``why`` as the note."""
-    prior = np.asarray(calibration.T_ref_sensor[name], dtype=np.float64)
-    offset = float(calibration.time_offset[name])
+    prior, offset = np.asarray(calibration.T_ref_sensor[name], dtype=np.float64), float(calibration.time_offset[name])
     readout = float(rig.sensors[name].readout_time) if rig is not None else 0.0
     return CameraResult(name, prior, offset, prior, offset, [float("inf")] * 7, float("nan"), float("nan"), True, note=why,
                         readout_prior=readout, readout_time=readout)
@@ -356,7 +356,7 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         if reference is not None and config.feature_start:
             initial = feature_start(traj, world, problem.camera, reference, np.asarray(calibration.T_ref_sensor[reference_name], dtype=np.float64),
                                     float(calibration.time_offset[reference_name]), problem.model.prior.numpy(), problem.model.prior_offset,
-                                    rig.sensors[name].intrinsics, bounds(config), FeatureStartConfig(), log)
+                                    rig.sensors[name].intrinsics, bounds(config), START, log)
             if initial.theta is None:
                 log(f"[camera-registration] {name}: {initial.note}")
         try:
@@ -371,7 +371,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             log(f"[camera-registration] {name}: {err}; it keeps its prior here")
         r = results[name]
         if source == "features" and initial is not None and initial.theta is None:  # neither this stage nor the NeRF can place it
-            why = (f"it shares no view with {reference_name} ({initial.note}) and {why_source or 'the rig has no LiDAR'}: fitted to "
+            lost = f"its start on {reference_name}'s features failed" if initial.matches >= START.min_inliers * START.min_frames else f"it shares no view with {reference_name}"
+            why = (f"{lost} ({initial.note}) and {why_source or 'the rig has no LiDAR'}: fitted to "
                    f"{reference_name}'s triangulated features alone, it inherits their errors, which none of its sigma parts sees")
             r = results[name] = replace(r, estimate=r.prior, time_offset=r.prior_offset, kept_prior=True, held_there=True, readout_time=r.readout_prior,
                                         note=f"{r.note}; {why}" if r.kept_prior and r.note else why)
