@@ -158,7 +158,8 @@ def split_half_spread(problem: Registration, theta: np.ndarray, active: np.ndarr
     half's frames carries its lateral lever arm, the halves lie 0.00 and 2.83 cm from the whole, the error is 4.52 cm;
     docs/lab/2026-11-29-movers.md). So sigma takes the farther half's distance from the whole (never less than half
     the difference), the "halves disagree" guard half the difference. The LiDAR-first stage's
-    ``lidar_first.split_half_spread`` is the same test.
+    ``lidar_first.split_half_spread`` is the same test; its sigma stays half the difference (the realistic street's
+    time offset: both halves biased alike by the trajectory's drift, the farther half would not cover it either).
 
     Returns:
         ``(apart, sigma)`` per correction (rad, rad, rad, m, m, m, s): half the difference of the halves, and the
