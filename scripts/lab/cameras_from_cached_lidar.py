@@ -22,9 +22,7 @@ from moisst_ns.rig.format import Calibration, load_calibration, load_rig  # noqa
 from moisst_ns.rig.trust import PARAMETERS, parameter_difference  # noqa: E402
 from moisst_ns.stages.camera.camera_registration import register_cameras  # noqa: E402
 from moisst_ns.stages.lidar.lidar_report import stage_sigma  # noqa: E402
-from moisst_ns.stages.trust.observability import JACOBIAN_ORDER  # noqa: E402
-
-UNITS = [100.0] * 3 + [float(np.rad2deg(1.0))] * 3 + [1000.0]  # cm, deg, ms
+from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, UNITS  # noqa: E402
 
 
 def main() -> None:
@@ -54,7 +52,7 @@ def main() -> None:
         error = parameter_difference(np.asarray(truth.T_ref_sensor[name]), truth.time_offset[name],
                                      np.asarray(result.calibration.T_ref_sensor[name]), result.calibration.time_offset[name])
         print("    error (sigma, split-half part):", ", ".join(f"{p} {v * u:+.2f} ({r.sigma[j] * u:.2f}, {r.sigma_split[j] * u:.2f})"
-                                                          for p, v, j, u in zip(PARAMETERS, error, JACOBIAN_ORDER, UNITS)))
+                                                          for p, v, j, (u, _) in zip(PARAMETERS, error, JACOBIAN_ORDER, UNITS)))
     for name in result.lidars:
         e = errors[name]
         print(f"  {name:<16} {e['translation_cm']:7.3f} cm {e['rotation_deg']:7.4f} deg {e['time_ms']:7.3f} ms (placed at the shared instants)")
