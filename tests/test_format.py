@@ -228,6 +228,23 @@ def test_unknown_top_level_key(rig_dir):
     rig_error(rig_dir, "sensor_list", "unknown key")
 
 
+@pytest.mark.parametrize("value, field, problem", [
+    ([0.01], "trajectory_accuracy", "must be an object of"), ({"noise_cm": 1.0}, "trajectory_accuracy.noise_cm", "unknown key"),
+    ({"drift_m": -0.01}, "trajectory_accuracy.drift_m", "must be a finite number >= 0, got -0.01"),
+    ({"noise_deg": "0.1"}, "trajectory_accuracy.noise_deg", "must be a finite number"), ({"noise_m": True}, "trajectory_accuracy.noise_m", "finite")])
+def test_bad_trajectory_accuracy(rig_dir, value, field, problem):
+    edit_json(rig_dir, lambda r: r.update(trajectory_accuracy=value))
+    rig_error(rig_dir, field, problem)
+
+
+def test_trajectory_accuracy_read_and_written_back(rig_dir):
+    assert "trajectory_accuracy" not in rig_to_json(load_rig(rig_dir))  # none stated: none written
+    edit_json(rig_dir, lambda r: r.update(trajectory_accuracy={"noise_m": 0.02, "drift_deg": 0.1}))
+    rig = load_rig(rig_dir)
+    assert (rig.trajectory_accuracy.noise_m, rig.trajectory_accuracy.noise_deg, rig.trajectory_accuracy.drift_deg) == (0.02, 0.0, 0.1)
+    assert rig_to_json(rig)["trajectory_accuracy"] == {"noise_m": 0.02, "noise_deg": 0.0, "drift_m": 0.0, "drift_deg": 0.1}
+
+
 def test_message_stays_on_one_line_with_line_breaks_in_keys(rig_dir):
     edit_json(rig_dir, lambda r: r.update({"bad\nkey\r": 1}))
     rig_error(rig_dir, "bad\\nkey\\r", "unknown key")

@@ -34,7 +34,6 @@ from moisst_ns.datasets.synth_effects import (
     exposure_offsets,
     lidar_dropout_mask,
     make_movers,
-    perturb_trajectory,
     photometric_params,
     pixel_directions,
     resolve_effects,
@@ -46,6 +45,7 @@ from moisst_ns.datasets.synth_render import render_frame
 from moisst_ns.datasets.synth_truth import config_of_rig
 from moisst_ns.rig.format import RigFormatError, load_calibration, load_lidar_scan, load_rig, rig_to_json
 from moisst_ns.rig.geometry import ReferenceTrajectory, sensor_pose
+from moisst_ns.rig.trajectory_noise import TrajectoryAccuracy, perturb_trajectory
 from helpers import file_hashes, scene_distance
 
 TINY = dict(width=64, height=48, frames=5, lidar_azimuth_steps=512, lidar_max_points=6000)
@@ -207,6 +207,9 @@ def test_pose_noise_only_on_the_written_trajectory(rigs):
     meta = json.loads((out / "rig.json").read_text())["metadata"]
     assert meta["pose_noise"] == [1.0, 0.02] and meta["effects"]["pose_drift"] == [3.0, 0.05]
     assert resolve_effects(config_of_rig(meta)) == resolve_effects(cfg)
+    # the trajectory's errors as its source would state them (m, deg), read back; the exact trajectory states none
+    assert noisy.trajectory_accuracy == TrajectoryAccuracy(0.01, 0.02, 0.03, 0.05) and not exact.trajectory_accuracy.stated()
+    assert "trajectory_accuracy" not in json.loads((plain / "rig.json").read_text())
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -91,16 +91,16 @@ def write_trajectory(path: Path, stamps_s: Float[np.ndarray, "num"], poses: Floa
 
 def write_rig(out: Path, reference: str, sensors: Sequence[str], lidars: Sequence[str], intrinsics: Dict[str, Dict[str, object]],
               frames: List[dict], priors: Dict[str, Tuple[np.ndarray, float]], metadata: dict,
-              truth: Optional[Dict[str, np.ndarray]] = None, config=None) -> None:
+              truth: Optional[Dict[str, np.ndarray]] = None, config=None, accuracy=None) -> None:
     """``rig.json`` of ``sensors`` into ``out``: the ``lidars`` among them LiDARs, the others cameras; ``frames`` sorted
     by time first; ``priors`` name -> (T_ref_sensor, time offset); metadata: the fields of the dataclass ``config`` but
     out and overwrite (none without one), then ``metadata``. With ``truth`` (name -> T_ref_sensor), also
-    ``ground_truth.json`` (offsets 0)."""
+    ``ground_truth.json`` (offsets 0). ``accuracy``: the trajectory's stated errors (``rig.format.rig_json``)."""
     frames.sort(key=lambda f: (f["timestamp"], f["sensor"]))
     rig_sensors = {s: ("lidar" if s in lidars else "camera", priors[s][0], priors[s][1], intrinsics.get(s, {})) for s in sensors}
     meta = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items() if k not in ("out", "overwrite")} if config else {}
     meta.update(metadata)
-    rig = rig_json(reference, "reference_poses.txt", rig_sensors, frames, meta)
+    rig = rig_json(reference, "reference_poses.txt", rig_sensors, frames, meta, accuracy)
     (out / "rig.json").write_text(json.dumps(rig, indent=1) + "\n")
     if truth is not None:
         Calibration(reference, {s: truth[s] for s in sensors}, {s: 0.0 for s in sensors}).write(out / "ground_truth.json")

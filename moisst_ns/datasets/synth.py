@@ -21,10 +21,11 @@ import numpy as np
 import tyro
 
 from moisst_ns.datasets.rig_writer import prepare_out, unit_quats, write_rig
-from moisst_ns.datasets.synth_effects import Effects, check_effects, make_movers, perturb_trajectory, photometric_params, resolve_effects
+from moisst_ns.datasets.synth_effects import Effects, check_effects, make_movers, photometric_params, resolve_effects
 from moisst_ns.datasets.synth_render import PERIOD, write_camera_frames, write_lidar_frames
 from moisst_ns.datasets.synth_rig import MOUNTS, REFERENCE, SensorTruth, _streams, knock_mount, make_priors, make_truth, vehicle_T_sensor
 from moisst_ns.datasets.synth_scene import Scene, VehiclePath, _ground, _plaza_objects, _street_objects
+from moisst_ns.rig.trajectory_noise import TrajectoryAccuracy, perturb_trajectory
 
 T0 = 1000.0
 """Absolute time of the first reference frame, seconds (keeps stamps away from zero, like real clocks)."""
@@ -230,6 +231,7 @@ def make_rig(config: SynthConfig) -> Path:
     samples = reference_trajectory_samples(config, path, truth)
     write_tum(out / "reference_poses.txt", *samples, header=header)
     traj = ReferenceTrajectory.from_tum(*load_tum(out / "reference_poses.txt"))
+    accuracy = TrajectoryAccuracy(fx.pose_noise[0] / 100, fx.pose_noise[1], fx.pose_drift[0] / 100, fx.pose_drift[1])  # stated as written
     if fx.trajectory:
         noisy = perturb_trajectory(*samples, fx.pose_noise, fx.pose_drift, streams["pose_noise"])
         write_tum(out / "reference_poses.txt", samples[0], *noisy, header=header + " (with pose noise / drift)")
@@ -266,7 +268,7 @@ def make_rig(config: SynthConfig) -> Path:
         meta["effects"] = fx.summary()  # what the switches resolved to (not read back by config_of_rig)
     meta["generator"] = "moisst-synth"
     meta["note"] = "priors per --perturb; true values in ground_truth.json"
-    write_rig(out, REFERENCE, list(truth), ["lidar"], {n: _camera_entry(intr, fx) for n in cameras}, frames, priors, meta)
+    write_rig(out, REFERENCE, list(truth), ["lidar"], {n: _camera_entry(intr, fx) for n in cameras}, frames, priors, meta, accuracy=accuracy)
     Calibration(
         REFERENCE, {n: s.T_ref_sensor for n, s in truth.items()}, {n: s.time_offset for n, s in truth.items()}
     ).write(out / "ground_truth.json")

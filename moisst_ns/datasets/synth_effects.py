@@ -115,45 +115,6 @@ def check_effects(fx: Effects, intr: Dict[str, object], period: float) -> List[s
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# The written reference trajectory
-
-
-def drift_signal(times: Float[np.ndarray, "num"], rms: float, rng: np.random.Generator) -> Float[np.ndarray, "num 3"]:
-    """A slow drift per axis: three sinusoids with periods drawn in 3-12 s and random phases, scaled so that each
-    axis' RMS over ``times`` is exactly ``rms`` (the unit of ``rms``)."""
-    period = rng.uniform(3.0, 12.0, (3, 3))  # (axis, component)
-    phase = rng.uniform(0.0, 2.0 * np.pi, (3, 3))
-    waves = np.sin(2.0 * np.pi * times[:, None, None] / period[None] + phase[None]).sum(axis=2)
-    return rms * waves / np.maximum(np.sqrt(np.mean(waves**2, axis=0)), 1e-12)
-
-
-def perturb_trajectory(
-    stamps: Float[np.ndarray, "num"], positions: Float[np.ndarray, "num 3"], quats_xyzw: Float[np.ndarray, "num 4"],
-    noise: Sequence[float], drift: Sequence[float], seed: np.random.SeedSequence,
-) -> Tuple[Float[np.ndarray, "num 3"], Float[np.ndarray, "num 4"]]:
-    """The reference trajectory as a GPS/INS or SLAM system would report it.
-
-    Args:
-        stamps: sample times, seconds. positions: ``world_t_ref``, metres. quats_xyzw: ``world_q_ref``.
-        noise: white noise (centimetres, degrees): standard deviation per axis of the position (world axes) and of the
-            rotation vector ``Log(R_true^T R_written)`` (about the reference sensor's own axes).
-        drift: slow drift (centimetres, degrees), RMS per axis over the samples, as ``drift_signal`` (periods 3-12 s).
-        seed: the draws; white noise and drift use separate streams (turning one on leaves the other's values alone).
-
-    Returns:
-        (positions (metres), unit quaternions x, y, z, w with w >= 0).
-    """
-    from scipy.spatial.transform import Rotation
-
-    noise_rng, drift_rng = (np.random.default_rng(s) for s in seed.spawn(2))
-    t = np.asarray(stamps, dtype=np.float64) - stamps[0]
-    d_pos = drift_signal(t, drift[0] / 100.0, drift_rng) + noise_rng.normal(0.0, noise[0] / 100.0, (len(t), 3))
-    d_rot = drift_signal(t, np.deg2rad(drift[1]), drift_rng) + noise_rng.normal(0.0, np.deg2rad(noise[1]), (len(t), 3))
-    quats = (Rotation.from_quat(quats_xyzw) * Rotation.from_rotvec(d_rot)).as_quat()
-    return positions + d_pos, quats * np.where(quats[:, 3:4] < 0, -1.0, 1.0)
-
-
-# ----------------------------------------------------------------------------------------------------------------
 # Camera timing and lens
 
 

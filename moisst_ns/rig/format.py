@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from moisst_ns.rig.files import RigFormatError, load_lidar_scan, load_tum, write_tum  # noqa: F401 (the readers' names, imported from here too)
+from moisst_ns.rig.trajectory_noise import TrajectoryAccuracy
 from moisst_ns.rig.trust import SensorTrust, TrustFieldError, parse_trust
 
 FORMAT = "moisst-rig/1"
@@ -72,6 +73,8 @@ class Rig:
     """(K, 3) ``world_t_ref``, metres."""
     trajectory_quats_xyzw: np.ndarray
     """(K, 4) ``world_q_ref``, x, y, z, w."""
+    trajectory_accuracy: TrajectoryAccuracy = field(default_factory=TrajectoryAccuracy)
+    """What the trajectory's source states of its errors (rig.json ``trajectory_accuracy``; none: taken as exact)."""
 
     @property
     def sensor_names(self) -> List[str]:
@@ -239,7 +242,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
     for key in TOP_KEYS:
         if key not in raw:
             raise RigFormatError(file, key, "missing")
-    unknown = sorted(set(raw) - set(TOP_KEYS) - {"comment", "metadata"})
+    unknown = sorted(set(raw) - set(TOP_KEYS) - {"comment", "metadata", "trajectory_accuracy"})
     if unknown:
         raise RigFormatError(file, unknown[0], "unknown key")
     if raw["format"] != FORMAT:
@@ -299,22 +302,20 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
         if len(stamps) > 1 and sensors[name].readout_time >= (period := round(float(np.median(np.diff(stamps))), 9)):
             raise RigFormatError(file, f"sensors.{name}.readout_time", f"must be < the camera's frame period {period:.6g} s, got {sensors[name].readout_time!r}")
     return Rig(root=root, reference_sensor=ref, sensors=sensors, frames=frames, trajectory_file=raw["trajectory"],
-               trajectory_stamps=traj_stamps, trajectory_positions=positions, trajectory_quats_xyzw=quats)
+               trajectory_stamps=traj_stamps, trajectory_positions=positions, trajectory_quats_xyzw=quats,
+               trajectory_accuracy=TrajectoryAccuracy.parse(raw.get("trajectory_accuracy"), file))
 
 
 def rig_to_json(rig: Rig) -> dict:
     """The rig.json content of ``rig`` (inverse of ``load_rig``)."""
     rolling = {n: {"readout_time": s.readout_time} for n, s in rig.sensors.items() if s.readout_time}
-    return rig_json(
-        rig.reference_sensor,
-        rig.trajectory_file,
-        {n: (s.type, s.T_ref_sensor, s.time_offset, {**s.intrinsics, **rolling.get(n, {})}) for n, s in rig.sensors.items()},
-        [{"sensor": f.sensor, "timestamp": f.timestamp, "file_path": f.file_path} for f in rig.frames],
-    )
+    return rig_json(rig.reference_sensor, rig.trajectory_file,
+                    {n: (s.type, s.T_ref_sensor, s.time_offset, {**s.intrinsics, **rolling.get(n, {})}) for n, s in rig.sensors.items()},
+                    [{"sensor": f.sensor, "timestamp": f.timestamp, "file_path": f.file_path} for f in rig.frames], accuracy=rig.trajectory_accuracy)
 
 
 def rig_json(reference_sensor: str, trajectory: str, sensors: Dict[str, tuple], frames: List[dict],
-             metadata: Optional[dict] = None) -> dict:
+             metadata: Optional[dict] = None, accuracy: Optional[TrajectoryAccuracy] = None) -> dict:
     """The rig.json content (``moisst-rig/1``) from its parts; the one place that lays out the file.
 
     Args:
@@ -323,13 +324,14 @@ def rig_json(reference_sensor: str, trajectory: str, sensors: Dict[str, tuple], 
         sensors: ``name -> (type, T_ref_sensor (4, 4) metres, time_offset seconds, intrinsics dict)``.
         frames: ``{"sensor", "timestamp", "file_path"}`` per frame, in file order.
         metadata: Free-form provenance written under ``"metadata"`` (omitted when None).
+        accuracy: The trajectory's stated errors, ``"trajectory_accuracy"`` (omitted when None or nothing stated).
 
     Returns: the JSON object, ready for ``json.dumps``.
     """
     entries = {name: {"type": kind, "T_ref_sensor": np.asarray(T).tolist(), "time_offset": float(delta), **intrinsics}
                for name, (kind, T, delta, intrinsics) in sensors.items()}
-    out = {"format": FORMAT, "reference_sensor": reference_sensor, "trajectory": trajectory, "sensors": entries,
-           "frames": frames}
+    stated = {"trajectory_accuracy": asdict(accuracy)} if accuracy is not None and accuracy.stated() else {}
+    out = {"format": FORMAT, "reference_sensor": reference_sensor, "trajectory": trajectory, **stated, "sensors": entries, "frames": frames}
     return out if metadata is None else {**out, "metadata": metadata}
 
 

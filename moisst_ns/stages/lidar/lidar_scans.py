@@ -81,6 +81,10 @@ class LidarFirstConfig:
     """Fit the two halves of the drive apart, from the estimate, and report every parameter's sigma as at least half their
     difference (``lidar_first.split_half_spread``; 12 s on the 320x240 street rig beside 35 s): on a 6-scan drive the
     estimate was 24-48 cm off per axis at formal sigmas of 1-4 cm; the halves differed by metres."""
+    trajectory_draws: int = 6
+    """Where rig.json states the trajectory's errors (``trajectory_accuracy``), fit again from the estimate on this many
+    draws of them and report every parameter's sigma as at least their RMS effect (``lidar_first.trajectory_spread``;
+    0: off). The halves cannot show a drift: it biases both alike."""
     hold_split_half: float = 2.0
     """Parameters whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms; the camera stage's
     rule) are not determined by the drive: fitted again from the prior with them held there, their sigma is how far the
