@@ -168,19 +168,21 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     unheld = ext if len(free) == 7 else None  # every parameter free from the prior: the release check's fit, if one is held
     fine = replace(config, radius_start=config.radius_end, start_baseline=float(baselines.max()) if len(baselines) else config.start_baseline)
     held_apart: List[int] = []
+
+    def fine_fit(t: ReferenceTrajectory, p: np.ndarray, b: np.ndarray, at: Extrinsic, params: np.ndarray) -> Optional[Extrinsic]:
+        """The finest radius' fit from ``at`` on trajectory ``t`` and scan pairs ``p`` (None: those scans do not overlap)."""
+        try:
+            return _fit(t, scans, p, b, at, prior, params, fine, lambda line: None, where)[0]
+        except LidarFirstError:
+            return None
+
     while True:  # the fit, then (hold_split_half, every parameter estimated) again with what the halves disagree on held
         corr = find_correspondences(traj, ext, scans, pairs, config.radius_end, config)
         residuals, jac = consistency_residuals(traj, ext, scans, corr, np.zeros(7))
         observability = analyse_observability(jac, residuals, huber_weights(residuals, config.huber), traj, scans.stamps + ext.time_offset, ext.rotation)
         split = None
         if config.split_half:
-            def half(p: np.ndarray, b: np.ndarray, at: Extrinsic = ext, params: np.ndarray = free) -> Optional[Extrinsic]:
-                try:
-                    return _fit(traj, scans, p, b, at, prior, params, fine, lambda line: None, where)[0]
-                except LidarFirstError:  # the half's scans do not overlap
-                    return None
-
-            split = split_half_spread(half, pairs, baselines, len(scans.stamps)).tolist()
+            split = split_half_spread(lambda p, b, at=ext, params=free: fine_fit(traj, p, b, at, params), pairs, baselines, len(scans.stamps)).tolist()
             log(f"[lidar-first] {sensor}: " + ("the halves of the drive cannot be fitted apart (split-half sigma not measured)" if np.isnan(split).any() else
                 "halves of the drive apart by " + ", ".join(f"{p} {2 * v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, split, UNITS))))
         apart = [] if split is None or config.hold_split_half <= 0 or len(free) + len(held_apart) < 7 else \
@@ -213,13 +215,8 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
             log(f"[lidar-first] {sensor}: {held['note']}")
     spread = None
     if config.trajectory_draws > 0 and rig.trajectory_accuracy.stated():
-        def refit(t: ReferenceTrajectory) -> Optional[Extrinsic]:
-            try:
-                return _fit(t, scans, pairs, baselines, ext, prior, free, fine, lambda line: None, where)[0]
-            except LidarFirstError:
-                return None
-
-        begun, spread = time.perf_counter(), trajectory_spread(refit, rig, ext, config.trajectory_draws).tolist()
+        begun = time.perf_counter()
+        spread = trajectory_spread(lambda t: fine_fit(t, pairs, baselines, ext, free), rig, ext, config.trajectory_draws).tolist()
         log(f"[lidar-first] {sensor}: the trajectory's stated errors ({config.trajectory_draws} draws, {time.perf_counter() - begun:.0f} s) move it by "
             + ", ".join(f"{p} {v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, spread, UNITS)) + " RMS")
     return LidarResult(sensor, prior, ext, history, observability, len(scans.stamps), scans.deskewed, scans.dropped,
