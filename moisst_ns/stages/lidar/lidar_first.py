@@ -3,8 +3,8 @@
 Every scan point is placed by paper eq. 1-2 at its own firing time (``lidar_geometry``); point-to-plane residuals
 between scans over growing baselines (``lidar_scans``) are solved coarse to fine for the 7 parameters of eq. 12 (robust
 trust-region Gauss-Newton, analytic Jacobian), then checked (split-half spread, release check) and, where the drive's
-halves hold parameters, placed by the shared view (``lidar_view``). docs/lidar-first.md has the formulation, the rules
-and the measurements. Nothing here imports nerfstudio.
+halves hold parameters, placed by the shared view (``lidar_view``); the trajectory's stated errors, drawn again, widen
+the sigma (``trajectory_spread``). docs/lidar-first.md has the formulation, the rules and the measurements. No nerfstudio.
 """
 
 from __future__ import annotations
