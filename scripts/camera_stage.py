@@ -24,11 +24,7 @@ from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig
 from moisst_ns.stages.lidar.lidar_first import LidarFirstConfig, calibrate_lidars, lidar_sensors
 from moisst_ns.stages.lidar.lidar_report import stage_sigma, stage_summary
 from moisst_ns.rig.trust import PARAMETERS, parameter_difference
-from moisst_ns.stages.trust.observability import UNITS
-
-TRUST_ORDER = [3, 4, 5, 0, 1, 2, 6]
-"""Solver order (rotation, lever arm, delta) to the trust order (lever arm, rotation, delta)."""
-
+from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, UNITS
 
 def config_from(settings: list) -> CameraRegistrationConfig:
     """``CameraRegistrationConfig`` with ``name=value`` overrides (typed like the field's default)."""
@@ -67,7 +63,7 @@ def run(folder: Path, config: CameraRegistrationConfig, lidar_map: bool = False)
             true_T, est_T = np.asarray(truth.T_ref_sensor[name]), np.asarray(r.estimate)
             rotation = roma.rotmat_to_rotvec(torch.from_numpy(est_T[:3, :3].T @ true_T[:3, :3])).numpy()
             error = np.r_[est_T[:3, 3] - true_T[:3, 3], rotation, r.time_offset - truth.time_offset[name]]
-            record[name] = {"error": error.tolist(), "sigma": [r.sigma[j] if np.isfinite(r.sigma[j]) else None for j in TRUST_ORDER], "kept": r.kept_prior,
+            record[name] = {"error": error.tolist(), "sigma": [r.sigma[j] if np.isfinite(r.sigma[j]) else None for j in JACOBIAN_ORDER], "kept": r.kept_prior,
                             "note": r.note, "wall_s": r.wall_s, "errors": e}
             line += f"  {'prior kept: ' + (r.note or 'held-back check') if r.kept_prior else 'accepted'}"
             if r.readout_estimate is not None:  # --set estimate_readout=true
