@@ -428,7 +428,7 @@ def test_trajectory_spread_is_the_rms_effect_of_new_draws_of_the_stated_errors(t
 @pytest.mark.slow
 def test_the_trajectorys_stated_errors_cover_what_its_drift_costs(tmp_path):
     """A trajectory with 1 cm / 0.02 deg of white noise and 3 cm / 0.05 deg of drift (``--realistic``'s), stated in
-    rig.json: the tiny drive's along-track lever arm ends 35 cm off at 7x the sigma of the formal, split-half and
+    rig.json: the tiny drive's lateral lever arm (x) ends 35 cm off at 7x the sigma of the formal, split-half and
     release parts (measured: the drift biases both halves alike); with the part its stated errors put into the estimate
     (six draws) every parameter is within 3 sigma. The estimate itself does not change."""
     out = make_rig(SynthConfig(out=tmp_path / "noisy", seed=3, perturb="paper", pose_noise=(1.0, 0.02), pose_drift=(3.0, 0.05), **TINY))

@@ -141,13 +141,13 @@ def stage_sigma(entry: dict):
     difference of the two (KITTI raw 0048 seed 2: the OXTS trajectory's turn from image_00 not found, the motion's pitch
     0.65 deg off under a sigma of 0.13)."""
     sigma, source = [d["sigma"] for d in entry["observability"]], "LiDAR-first formal"
-    if entry.get("sigma_split_half"):  # the two halves of the drive fitted apart
-        sigma, source = list(np.fmax(sigma, [np.nan if v is None else v for v in entry["sigma_split_half"]])), "LiDAR-first formal and split-half"
+    if entry.get("sigma_split_half"):  # the two halves of the drive fitted apart (None, not measured: NaN, which fmax skips)
+        sigma, source = list(np.fmax(sigma, np.asarray(entry["sigma_split_half"], dtype=float))), "LiDAR-first formal and split-half"
     if entry.get("held_check"):  # the free parameters' spread when the held ones are released; the held ones' prior sigma
         check = entry["held_check"]
         sigma, source = list(np.fmax(np.fmax(sigma, check["sigma_release"]), check.get("sigma_held", np.zeros(7)))), source + " and release"
     if entry.get("sigma_trajectory"):  # the trajectory's stated errors drawn again (lidar_first.trajectory_spread)
-        sigma, source = list(np.fmax(sigma, [np.nan if v is None else v for v in entry["sigma_trajectory"]])), source + " and the trajectory's errors"
+        sigma, source = list(np.fmax(sigma, np.asarray(entry["sigma_trajectory"], dtype=float))), source + " and the trajectory's errors"
     instant = entry.get("shared_instant") or {}
     for p in instant.get("taken", []):
         i = PARAMETERS.index(p)
