@@ -66,6 +66,9 @@ def run(folder: Path, config: CameraRegistrationConfig, lidar_map: bool = False)
             record[name] = {"error": error.tolist(), "sigma": [r.sigma[j] if np.isfinite(r.sigma[j]) else None for j in JACOBIAN_ORDER], "kept": r.kept_prior,
                             "note": r.note, "wall_s": r.wall_s, "errors": e}
             line += f"  {'prior kept: ' + (r.note or 'held-back check') if r.kept_prior else 'accepted'}"
+            if not r.kept_prior:  # the error in units of the stage's sigma, per parameter (x, y, z, roll, pitch, yaw, time offset)
+                sigma = np.array(record[name]["sigma"], dtype=float)
+                line += "; error / sigma " + ", ".join(f"{p} {abs(x) / s:.2f}" for p, x, s in zip(PARAMETERS, error, sigma))
             if r.readout_estimate is not None:  # --set estimate_readout=true
                 line += (f"; readout {r.readout_time * 1000:.2f} ms used (fit {r.readout_estimate * 1000:.2f} ms, sigma {r.readout_sigma * 1000:.2f} ms"
                          + (f": {r.readout_note}" if r.readout_note else "") + ")")
