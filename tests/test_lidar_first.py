@@ -396,33 +396,36 @@ def test_split_half_spread_exact_values():
 
 
 def test_trajectory_spread_is_the_rms_effect_of_new_draws_of_the_stated_errors(tiny_rigs):
-    """Each draw is the rig's trajectory plus one more draw of its stated errors (seeds 0 .. draws-1); the spread is the
-    RMS over the fits of their difference from the estimate: here a fit that follows the mean position shift exactly
-    and a delta of 1 ms per centimetre of it. A failed fit is left out; none fitted: NaN."""
-    from moisst_ns.rig.trajectory_noise import TrajectoryAccuracy
-    from moisst_ns.stages.lidar.lidar_first import trajectory_spread
+    """Each draw is the rig's trajectory plus one more draw of its stated errors (seeds 0 .. draws-1), the rig itself
+    untouched; the spread is, per sensor, the RMS over the fits of their difference from the estimate: here a fit that
+    follows the mean position shift exactly and a delta of 1 ms per centimetre of it. A failed fit is left out; none
+    fitted: NaN."""
+    from moisst_ns.rig.trajectory_noise import TrajectoryAccuracy, trajectory_spread
 
     rig = load_rig(tiny_rigs["raw"])
     rig.trajectory_accuracy = TrajectoryAccuracy(noise_m=0.01, drift_m=0.03, drift_deg=0.05)
     given = rig.trajectory_positions.copy()
-    estimate = Extrinsic(np.eye(3), np.zeros(3), 0.0)
+    estimate = {"a": (np.eye(4), 0.0), "b": (np.eye(4), 0.5)}
     shifts = []
 
-    def fit(traj):
-        shift = (traj.translations.numpy() - given).mean(axis=0)
+    def fit(drawn):
+        shift = (drawn.trajectory_positions - given).mean(axis=0)
         shifts.append(shift)
-        return None if len(shifts) == 2 else Extrinsic(np.eye(3), shift, 0.1 * shift[0])
+        pose = np.eye(4)
+        pose[:3, 3] = shift
+        return {"a": None if len(shifts) == 2 else (pose, 0.1 * shift[0]), "b": None}
 
     spread = trajectory_spread(fit, rig, estimate, 4)
     kept = np.array([s for i, s in enumerate(shifts) if i != 1])
     assert len(shifts) == 4 and np.abs(kept).max() > 1e-3  # the draws differ from the given trajectory, by centimetres
-    np.testing.assert_allclose(spread[:3], np.sqrt(np.mean(kept**2, axis=0)), rtol=1e-9)
-    np.testing.assert_allclose(spread[6], 0.1 * np.sqrt(np.mean(kept[:, 0] ** 2)), rtol=1e-9)
-    np.testing.assert_allclose(spread[3:6], 0.0, atol=1e-12)
+    np.testing.assert_array_equal(rig.trajectory_positions, given)
+    np.testing.assert_allclose(spread["a"][:3], np.sqrt(np.mean(kept**2, axis=0)), rtol=1e-9)
+    np.testing.assert_allclose(spread["a"][6], 0.1 * np.sqrt(np.mean(kept[:, 0] ** 2)), rtol=1e-9)
+    np.testing.assert_allclose(spread["a"][3:6], 0.0, atol=1e-12)
+    assert np.all(np.isnan(spread["b"]))
     again = []
-    trajectory_spread(lambda t: again.append((t.translations.numpy() - given).mean(axis=0)), rig, estimate, 4)
+    trajectory_spread(lambda drawn: again.append((drawn.trajectory_positions - given).mean(axis=0)) or {}, rig, estimate, 4)
     np.testing.assert_array_equal(np.array(again), np.array(shifts))  # the same draws every time (seeds 0 .. 3)
-    assert np.all(np.isnan(trajectory_spread(lambda t: None, rig, estimate, 3)))
 
 
 @pytest.mark.slow

@@ -88,6 +88,11 @@ class CameraRegistrationConfig:
     split_half: bool = True
     """Also solve the two halves of the drive and report sigma as at least their spread (``split_half_spread``; two
     more solves at full resolution)."""
+    trajectory_draws: int = 6
+    """Where rig.json states the trajectory's errors (``trajectory_accuracy``), each accepted camera is fitted again at
+    the finest level from its estimate on this many draws of them, the map rebuilt on each (``camera_registration.trajectory_part``),
+    and its sigma is at least their RMS effect (0: off). The map and the camera's partners are placed by the same noisy
+    trajectory, which none of the other parts sees."""
     seed: int = 0
     """Seed of the point samples."""
     estimate_readout: bool = False

@@ -25,7 +25,8 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                   truth: Optional[Calibration]) -> dict:
     """The JSON-ready record of a stage run (``camera_registration.json``).
 
-    ``sigma`` (and its parts ``sigma_formal``, ``sigma_split_half``, ``sigma_resolution``, ``sigma_convergence``) is in the trust order (``x, y, z, roll, pitch,
+    ``sigma`` (and its parts ``sigma_formal``, ``sigma_split_half``, ``sigma_resolution``, ``sigma_convergence``, and
+    ``sigma_trajectory`` where rig.json states the trajectory's errors) is in the trust order (``x, y, z, roll, pitch,
     yaw, time_offset``; m, rad, s); a parameter whose sigma exceeds its typical prior error (10 cm, 1 deg, 10 ms) is
     listed in ``weak``; ``blind`` lists those its view does not tell a typical prior error apart on
     (``typical_error_significance`` under ``min_significance``): such a camera keeps its prior, and ``moisst-calibrate``
@@ -39,7 +40,8 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
     for name, r in result.cameras.items():
         sigma = [float(r.sigma[j]) for j in JACOBIAN_ORDER]
         parts = {f"sigma_{k}": [finite_or_none(v[j]) for j in JACOBIAN_ORDER] for k, v in (("formal", r.sigma_formal), ("split_half", r.sigma_split),
-                                                                                   ("resolution", r.sigma_resolution), ("convergence", r.sigma_convergence)) if v}
+                                                                                   ("resolution", r.sigma_resolution), ("convergence", r.sigma_convergence),
+                                                                                   ("trajectory", r.sigma_trajectory)) if v}
         entry = {"T_ref_sensor": np.asarray(r.estimate).tolist(), "time_offset": r.time_offset, "prior_T_ref_sensor": np.asarray(r.prior).tolist(),
                  "prior_time_offset": r.prior_offset, "sigma": [finite_or_none(s) for s in sigma],
                  "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step],

@@ -19,6 +19,7 @@ from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
+from moisst_ns.rig.trajectory_noise import trajectory_spread
 from moisst_ns.rig.trust import parameter_difference
 from moisst_ns.stages.lidar.lidar_geometry import Extrinsic, prior_residuals
 from moisst_ns.stages.camera.lidar_map import CameraStageError
@@ -216,37 +217,15 @@ def calibrate_lidar(rig: Rig, sensor: str, config: LidarFirstConfig, log: Callab
     spread = None
     if config.trajectory_draws > 0 and rig.trajectory_accuracy.stated():
         begun = time.perf_counter()
-        spread = trajectory_spread(lambda t: fine_fit(t, pairs, baselines, ext, free), rig, ext, config.trajectory_draws).tolist()
+        def drawn_fit(drawn: Rig) -> Dict[str, Optional[Tuple[np.ndarray, float]]]:
+            fitted = fine_fit(ReferenceTrajectory.of(drawn), pairs, baselines, ext, free)
+            return {sensor: None if fitted is None else (fitted.matrix(), fitted.time_offset)}
+
+        spread = trajectory_spread(drawn_fit, rig, {sensor: (ext.matrix(), ext.time_offset)}, config.trajectory_draws)[sensor].tolist()
         log(f"[lidar-first] {sensor}: the trajectory's stated errors ({config.trajectory_draws} draws, {time.perf_counter() - begun:.0f} s) move it by "
             + ", ".join(f"{p} {v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, spread, UNITS)) + " RMS")
     return LidarResult(sensor, prior, ext, history, observability, len(scans.stamps), scans.deskewed, scans.dropped,
                        time.perf_counter() - start, held, split, None if searched is None else searched.to_json(), spread)
-
-
-def trajectory_spread(fit: Callable[[ReferenceTrajectory], Optional[Extrinsic]], rig: Rig, estimate: Extrinsic,
-                      draws: int) -> Float[np.ndarray, "7"]:
-    """What the trajectory's own errors put into the estimate: the RMS difference from ``estimate`` of ``draws`` fits,
-    each on the rig's trajectory with one more draw of the errors rig.json states (``TrajectoryAccuracy.draw``, seeds
-    0 .. draws-1). Where the estimate responds linearly to the trajectory, its error from the given trajectory's errors
-    is one draw of that spread. The drive's halves cannot show it: a drift biases both alike (realistic street seed 2:
-    delta 11.5 ms off, its halves within 3.6 ms of the whole).
-
-    Args:
-        fit: ``fit(trajectory) -> Extrinsic``, the stage's fit from ``estimate`` on that trajectory (None: it failed).
-        rig: the loaded dataset (its trajectory and ``trajectory_accuracy``).
-        estimate: the stage's estimate on the given trajectory.
-        draws: how many draws.
-
-    Returns:
-        Per parameter of ``observability.PARAMETERS`` (m, rad, s); NaN where no draw could be fitted.
-    """
-    moved = []
-    for seed in range(draws):
-        positions, quats = rig.trajectory_accuracy.draw(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw, seed)
-        fitted = fit(ReferenceTrajectory.from_tum(rig.trajectory_stamps, positions, quats))
-        if fitted is not None:
-            moved.append(parameter_difference(estimate.matrix(), estimate.time_offset, fitted.matrix(), fitted.time_offset))
-    return np.sqrt(np.mean(np.square(moved), axis=0)) if moved else np.full(7, np.nan)
 
 
 def _place_by_view(sensor: str, traj: ReferenceTrajectory, scans: ScanSet, pairs, baselines, ext: Extrinsic, prior: Extrinsic, free, held: List[int],

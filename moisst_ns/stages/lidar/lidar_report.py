@@ -135,7 +135,7 @@ def stage_sigma(entry: dict):
     """A LiDAR's sigma from its LiDAR-first record (trust order; m, rad, s) and where it comes from: the formal one,
     at least half the split-half difference and the release check's spread where those ran, the prior's sigma for
     a parameter held at the prior (``lidar_first.held_sigma``), at least what the trajectory's stated errors put into
-    it (``lidar_first.trajectory_spread``), and for a parameter placed against the cameras at the
+    it (``trajectory_noise.trajectory_spread``), and for a parameter placed against the cameras at the
     same instants (``shared_instant``, ``lidar_placement.place_lidars``) that placement's sigma, its lever arm's with what
     the time offset's sigma moves it along the drive; for one placed there but kept at the motion's, at least the whole
     difference of the two (KITTI raw 0048 seed 2: the OXTS trajectory's turn from image_00 not found, the motion's pitch
@@ -146,7 +146,7 @@ def stage_sigma(entry: dict):
     if entry.get("held_check"):  # the free parameters' spread when the held ones are released; the held ones' prior sigma
         check = entry["held_check"]
         sigma, source = list(np.fmax(np.fmax(sigma, check["sigma_release"]), check.get("sigma_held", np.zeros(7)))), source + " and release"
-    if entry.get("sigma_trajectory"):  # the trajectory's stated errors drawn again (lidar_first.trajectory_spread)
+    if entry.get("sigma_trajectory"):  # the trajectory's stated errors drawn again (trajectory_noise.trajectory_spread)
         sigma, source = list(np.fmax(sigma, np.asarray(entry["sigma_trajectory"], dtype=float))), source + " and the trajectory's errors"
     instant = entry.get("shared_instant") or {}
     for p in instant.get("taken", []):

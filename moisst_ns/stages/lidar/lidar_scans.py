@@ -83,7 +83,7 @@ class LidarFirstConfig:
     estimate was 24-48 cm off per axis at formal sigmas of 1-4 cm; the halves differed by metres."""
     trajectory_draws: int = 6
     """Where rig.json states the trajectory's errors (``trajectory_accuracy``), fit again from the estimate on this many
-    draws of them and report every parameter's sigma as at least their RMS effect (``lidar_first.trajectory_spread``;
+    draws of them and report every parameter's sigma as at least their RMS effect (``trajectory_noise.trajectory_spread``;
     0: off). The halves cannot show a drift: it biases both alike."""
     hold_split_half: float = 2.0
     """Parameters whose split-half spread exceeds this many typical prior errors (10 cm, 1 deg, 10 ms; the camera stage's
