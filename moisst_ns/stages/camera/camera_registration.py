@@ -49,7 +49,8 @@ class CameraResult:
     """Standard deviations of the 7 corrections (rad, rad, rad, m, m, m, s): the largest of the formal one (max of
     classical and frame-clustered, ``uncertainty_math.least_squares_sigma``, from the finest level's last solve; inf
     where unconstrained), the split-half spread (``split_half_spread``), the resolution spread
-    (``resolution_spread``) and the convergence tail (``convergence_tail``)."""
+    (``resolution_spread``), the convergence tail (``convergence_tail``) and, where rig.json states the trajectory's
+    errors, the trajectory part (``trajectory_part``)."""
     cost_prior: float
     """Held-back mean Huber cost at the prior (fresh samples at the finest level: ``held_back_check``)."""
     cost_estimate: float
