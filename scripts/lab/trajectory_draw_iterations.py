@@ -1,4 +1,4 @@
-"""The trajectory part of the LiDAR stage's sigma (``lidar_first.trajectory_spread``) with each draw's fit converged (the
+"""The trajectory part of the LiDAR stage's sigma (``trajectory_noise.trajectory_spread``, as ``lidar_first`` imports it) with each draw's fit converged (the
 stage's rule), or cut after 2 or 1 outer iterations: how much cheaper, and how much smaller (docs/uncertainty.md, "The
 trajectory's own errors"). The stage runs once with the part off; the spread is then computed three ways from its
 estimate.
@@ -23,9 +23,9 @@ def main() -> None:
     rig = load_rig(sys.argv[1])
     spread, fit, caught = lidar_first.trajectory_spread, lidar_first._fit, {}
 
-    def catch(refit, rig_, estimate, draws):  # the stage's own refit closure and estimate, no draws yet
-        caught.update(refit=refit, estimate=estimate)
-        return np.zeros(7)
+    def catch(refit, rig_, estimates, draws):  # the stage's own refit closure and estimate, no draws yet
+        caught.update(refit=refit, estimates=estimates)
+        return {name: np.zeros(7) for name in estimates}
 
     lidar_first.trajectory_spread = catch
     lidar_first.calibrate_lidar(rig, "lidar", lidar_first.LidarFirstConfig(), log=lambda line: None)
@@ -33,7 +33,7 @@ def main() -> None:
     for outer in (None, 2, 1):
         lidar_first._fit = fit if outer is None else (lambda *a, n=outer: fit(*a[:7], replace(a[7], max_outer=n), *a[8:]))
         begun = time.time()
-        s = spread(caught["refit"], rig, caught["estimate"], lidar_first.LidarFirstConfig().trajectory_draws)
+        s = spread(caught["refit"], rig, caught["estimates"], lidar_first.LidarFirstConfig().trajectory_draws)["lidar"]
         print(f"outer iterations {'converged' if outer is None else outer}: {time.time() - begun:.0f} s, cm {np.round(100 * s[:3], 2)}, "
               f"deg {np.round(np.rad2deg(s[3:6]), 3)}, ms {1000 * s[6]:.2f}", flush=True)
     lidar_first._fit = fit
