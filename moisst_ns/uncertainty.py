@@ -284,8 +284,8 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         free = [] if sigma is None else [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= UNCONSTRAINED * step]
         check = (entry or {}).get("held_check") or {}
         held = f"{check['note']}: the free parameters absorbed that error" if check.get("note") else None
-        if entry is not None and entry.get("held_there") and not blind:  # the camera-registration stage held it (its note)
-            held = entry["note"]
+        if entry is not None and entry.get("held_there") and not blind:  # the camera-registration stage held it (its note),
+            held, free = entry["note"], []  # unfitted (sigma inf): the note says why, not the sigma
         verdict, reason = decide_verdict(moving.get(name), loss_est, loss_prior, weak, hit.get(name, []), free, blind, held)
         keep_prior = verdict == "not converged"
         if keep_prior:  # the dataset's prior (rig.json), also for a LiDAR the NeRF started from the LiDAR-first estimate
