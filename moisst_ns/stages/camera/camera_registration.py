@@ -264,7 +264,7 @@ def register_camera(problem: Registration, config: CameraRegistrationConfig, log
     if len(factors) > 2:  # the feature start is about a pixel from its fit at full resolution, inside the finer levels'
         # basin, where the coarsest levels' minima may lie apart from theirs (realistic plaza seed 2: 1/8 and 1/4 put
         # cam_front_right 24-25 cm off, and from there the finer levels stay in a minimum of 1.6x the cost at 1.1 cm)
-        starts.append((initial.theta, factors[-2:-1], f"features from 1/{factors[-2]} ({_started(initial).split(' (', 1)[1]}"))
+        starts.append((initial.theta, factors[-2:-1], _started(initial).replace("features", f"features from 1/{factors[-2]}", 1)))
     coarse = [(_descend(problem, config, log, theta, levels), begun) for theta, levels, begun in starts]
     if len(factors) > 1:
         coarse = _basins(problem, config, coarse, factors[-2], log)
@@ -311,8 +311,9 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
     each camera (``trajectory_noise.trajectory_spread``: ``config.trajectory_draws`` draws; on each the map is rebuilt and
     every camera fitted again at the finest level from its estimate, as ``_descend`` does there). The estimates do not
     change. The map (LiDAR scans or triangulated features) and a camera's own partners are both placed by the trajectory,
-    so a noisy one moves the estimate by more than any part measured on the given trajectory can see (realistic plaza
-    seed 2 without a LiDAR: cam_front_right 25.8 cm off at 8.8 sigma without this part; its exact-trajectory twin 0.25 cm).
+    so a noisy one moves the estimate by more than any part measured on the given trajectory can see (realistic rigs
+    without a LiDAR, cam_front_right: plaza seed 2's x 2.6 sigma and street seed 3's pitch 3.0 sigma off without this
+    part, within 1.4 sigma with it: docs/uncertainty.md).
 
     Args:
         rig: the dataset; its ``trajectory_accuracy`` is stated.
@@ -336,10 +337,10 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
             world = _world(drawn, calibration, config, source, lambda _: None)
         except NoMapError:
             return {n: None for n in problems}
-        poses: Dict[str, Optional[Tuple[np.ndarray, float]]] = {}
+        traj, poses = ReferenceTrajectory.of(drawn), {}
         for name, problem in problems.items():
             settings = replace(config, estimate_readout=len(thetas[name]) > 7)  # as the result was fitted (readout refit: without)
-            again = Registration(ReferenceTrajectory.of(drawn), world, problem.camera, reference, calibration, settings)
+            again = Registration(traj, world, problem.camera, reference, calibration, settings)
             try:
                 theta = _descend(again, settings, lambda _: None, thetas[name], [finest[name]])[0]
             except NoOverlapError:
@@ -443,7 +444,7 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             lost = f"its start on {reference_name}'s features failed" if initial.matches >= START.min_inliers * START.min_frames else f"it shares no view with {reference_name}"
             why = (f"{lost} ({initial.note}) and {why_source or 'the rig has no LiDAR'}: fitted to "
                    f"{reference_name}'s triangulated features alone, it inherits their errors, which none of its sigma parts sees")
-            r = results[name] = replace(_prior_kept(name, calibration, why, rig), held_there=True)
+            results[name] = replace(_prior_kept(name, calibration, why, rig), held_there=True)
             log(f"[camera-registration] {name}: {why}; it keeps its prior, not fitted")
             continue
         try:
