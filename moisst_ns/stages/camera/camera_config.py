@@ -85,6 +85,10 @@ class CameraRegistrationConfig:
     """Start each camera from its pose fitted to SIFT features matched to the reference camera's map-anchored
     keypoints (``feature_start``) where that fit holds, else from its prior (a side camera the reference never
     overlaps); the photometric basin is about a pixel at the coarsest level, the features' is the whole image."""
+    own_motion: bool = True
+    """A camera that keeps its prior against a LiDAR map (a side camera: its own pairs hardly see its lever arm) is
+    placed by its own motion instead: its own matches, triangulated from the trajectory's poses, against the map's
+    surfaces (``own_motion``), guarded by the held-back loss and the split halves. Off: it keeps its prior."""
     split_half: bool = True
     """Also solve the two halves of the drive and report sigma as at least their spread (``split_half_spread``; two
     more solves at full resolution)."""

@@ -16,6 +16,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 from jaxtyping import Float
+from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
@@ -26,6 +27,7 @@ from moisst_ns.stages.camera.feature_start import FeatureStart, FeatureStartConf
 from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, NoOverlapError, lidar_map, map_source, pyramid_factors
 from moisst_ns.stages.camera.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, convergence_tail, held_back_check, points_per_frame, reference_cost,
                                             resolution_spread, solve, split_half_spread, typical_error_significance)
+from moisst_ns.stages.camera.own_motion import MapSurface, OwnMotionConfig, fit_own_motion, own_matches
 from moisst_ns.stages.camera.photometric import CameraFrames, PairSet, Registration, robust_cost
 from moisst_ns.stages.lidar.lidar_instant import InstantPlacement
 from moisst_ns.stages.lidar.lidar_placement import place_again, place_lidars, trajectory_turn
@@ -309,7 +311,8 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
                     results: Dict[str, CameraResult], reference: Optional[CameraFrames], log: Callable[[str], None]) -> Dict[str, CameraResult]:
     """``results`` with the trajectory part of their sigma: what the errors rig.json states of the trajectory put into
     each camera (``trajectory_noise.trajectory_spread``: ``config.trajectory_draws`` draws; on each the map is rebuilt and
-    every camera fitted again at the finest level from its estimate, as ``_descend`` does there). The estimates do not
+    every camera fitted again from its estimate: at the finest level, as ``_descend`` does there, or by its own motion
+    where it was placed so, ``own_motion.fit_own_motion`` at the fine radius). The estimates do not
     change. The map (LiDAR scans or triangulated features) and a camera's own partners are both placed by the trajectory,
     so a noisy one moves the estimate by more than any part measured on the given trajectory can see (realistic rigs
     without a LiDAR, cam_front_right: plaza seed 2's x 2.6 sigma and street seed 3's pitch 3.0 sigma off without this
@@ -330,7 +333,10 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
     """
     begun = time.perf_counter()
     finest = {n: min(p.camera.levels) for n, p in problems.items()}
-    thetas = {n: np.asarray(r.history[-1]["correction"], dtype=np.float64) for n, r in results.items()}
+    own = {n: own_matches(rig, n, OWN) for n, r in results.items() if r.start.startswith("own motion")}  # placed by their own motion
+    thetas = {n: np.asarray(r.history[-1]["correction"], dtype=np.float64) if n not in own else
+              np.r_[Rotation.from_matrix(r.prior[:3, :3].T @ r.estimate[:3, :3]).as_rotvec(), r.estimate[:3, 3] - r.prior[:3, 3], r.time_offset - r.prior_offset]
+              for n, r in results.items()}
 
     def fit(drawn: Rig) -> Dict[str, Optional[Tuple[np.ndarray, float]]]:
         try:
@@ -338,7 +344,12 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
         except NoMapError:
             return {n: None for n in problems}
         traj, poses = ReferenceTrajectory.of(drawn), {}
+        surface = MapSurface.of(world, OWN.normal_radius) if own else None
         for name, problem in problems.items():
+            if name in own:  # refitted by its own motion, from its estimate
+                again = fit_own_motion(traj, own[name], surface, results[name].prior, results[name].prior_offset, OWN, lambda _: None, name, thetas[name])
+                poses[name] = None if again is None else _corrected(results[name].prior, results[name].prior_offset, again.theta)
+                continue
             settings = replace(config, estimate_readout=len(thetas[name]) > 7)  # as the result was fitted (readout refit: without)
             again = Registration(traj, world, problem.camera, reference, calibration, settings)
             try:
@@ -359,6 +370,33 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
             + ", ".join(f"{p} {v * u:.3g} {n}" for p, v, (u, n) in zip(TRUST_ORDER, spread[name], UNITS)) + " RMS")
         out[name] = replace(r, sigma=sigma.tolist(), sigma_trajectory=part.tolist())
     return out
+
+
+OWN = OwnMotionConfig()  # the own-motion fit's settings
+
+
+def own_motion_result(rig: Rig, traj: ReferenceTrajectory, surface: MapSurface, kept: CameraResult, config: CameraRegistrationConfig,
+                      log: Callable[[str], None]) -> CameraResult:
+    """``kept`` (a camera the photometric fit left at its prior against a LiDAR map) placed by its own motion
+    (``own_motion.fit_own_motion``), or ``kept`` again, its note extended, where that fit places nothing, its held-back
+    loss is no lower than the prior's or the drive's halves disagree by more than ``max_split_half`` typical errors.
+    sigma is the largest of the fit's formal, split-half and convergence parts; ``history`` stays the photometric fit's."""
+    begun = time.perf_counter()
+    fit = fit_own_motion(traj, own_matches(rig, kept.sensor, OWN), surface, kept.prior, kept.prior_offset, OWN, log, kept.sensor)
+    apart = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(fit.sigma_split > config.max_split_half * TYPICAL_ERROR)]
+    why = ("its own matches do not lie on the map" if fit is None else
+           f"its own motion's held-back loss {fit.loss_estimate:.4g} m is no lower than the prior's {fit.loss_prior:.4g} m" if not fit.loss_estimate < fit.loss_prior else
+           f"the two halves of the drive place it apart on {', '.join(apart)} by more than {config.max_split_half:g}x a typical prior error" if apart else "")
+    if why:
+        log(f"[camera-registration] {kept.sensor}: {why}; it keeps its prior")
+        return replace(kept, note=f"{kept.note}; by its own motion: {why}")
+    pose, offset = _corrected(kept.prior, kept.prior_offset, fit.theta)
+    sigma = np.fmax.reduce([fit.sigma_formal, fit.sigma_split, fit.sigma_convergence])
+    log(f"[camera-registration] {kept.sensor}: the photometric fit kept its prior ({kept.note or 'held-back check'}); placed by its own motion instead")
+    return replace(kept, estimate=pose, time_offset=offset, sigma=sigma.tolist(), cost_prior=fit.loss_prior, cost_estimate=fit.loss_estimate,
+                   kept_prior=False, note="", sigma_formal=fit.sigma_formal.tolist(), sigma_split=fit.sigma_split.tolist(), blind=[], significance=[],
+                   start=f"own motion ({fit.points} of its own matches on the map; the photometric fit: {kept.note or 'held-back check'})",
+                   sigma_resolution=[], sigma_convergence=fit.sigma_convergence.tolist(), held_there=False, wall_s=kept.wall_s + time.perf_counter() - begun)
 
 
 def _prior_kept(name: str, calibration: Calibration, why: str, rig: Optional[Rig] = None) -> CameraResult:
@@ -427,6 +465,7 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     reference = CameraFrames.of(rig, reference_name, factors) if reference_name else None
     floor = reference_cost(traj, world, reference, calibration, config) if reference is not None else None
     problems: Dict[str, Registration] = {}
+    surface: Optional[MapSurface] = None  # the map's normals, for a camera placed by its own motion
     if floor is not None:
         log(f"[camera-registration] {reference_name}'s own photometric cost (its frames against each other): {floor:.4f}")
     for name in cameras:
@@ -457,6 +496,9 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         except NoOverlapError as err:
             results[name] = _prior_kept(name, calibration, str(err), rig)
             log(f"[camera-registration] {name}: {err}; it keeps its prior here")
+        if config.own_motion and source == "lidar" and results[name].kept_prior and config.estimate_extrinsic and config.estimate_time_offset:
+            surface = surface or MapSurface.of(world, OWN.normal_radius)
+            results[name] = own_motion_result(rig, traj, surface, results[name], config, log)
         r = results[name]
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
     accepted = {n: p for n, p in problems.items() if not results[n].kept_prior}
