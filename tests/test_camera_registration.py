@@ -672,19 +672,19 @@ def test_a_feature_start_is_descended_from_the_second_finest_level_too_and_each_
     cam_front_right 24-25 cm off and the finer levels stay there at 1.6x the cost; from 1/2 it ends 1.1 cm off); with two
     levels it does not (it would repeat the feature start's descent). The finest level then runs once per basin, from
     the lower-cost descent of each, and the kept result is the lowest final cost."""
-    from moisst_ns.stages.camera import camera_registration
+    from moisst_ns.stages.camera import camera_fit
     from moisst_ns.stages.camera.feature_start import FeatureStart
     from moisst_ns.stages.camera.lidar_map import lidar_map
     from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
     rig, truth, start = lidar_at_truth(rig_folder)
-    descend, calls = camera_registration._descend, []
+    descend, calls = camera_fit._descend, []
 
     def spy(problem, config, log, theta, factors=None, so_far=None):
         calls.append((list(factors) if factors is not None else None, np.array(theta[:7]), so_far is not None))
         return descend(problem, config, log, theta, factors, so_far)
 
-    monkeypatch.setattr(camera_registration, "_descend", spy)
+    monkeypatch.setattr(camera_fit, "_descend", spy)
     theta = np.r_[0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.0]
     for min_width, levels in ((20, [4, 2, 1]), (40, [2, 1])):
         config = CameraRegistrationConfig(min_width=min_width, outer_iterations=1, fine_iterations=1, fine_points_per_frame=600, split_half=False)
@@ -694,7 +694,7 @@ def test_a_feature_start_is_descended_from_the_second_finest_level_too_and_each_
         camera, reference = CameraFrames.of(rig, "cam_front_right", factors), CameraFrames.of(rig, rig.reference_sensor, factors)
         calls.clear()
         lines = []
-        result = camera_registration.register_camera(Registration(ReferenceTrajectory.of(rig), world, camera, reference, start, config), config,
+        result = camera_fit.register_camera(Registration(ReferenceTrajectory.of(rig), world, camera, reference, start, config), config,
                                                      lines.append, None, FeatureStart(theta, 20, 500, 1.0, "test"))
         fresh = [(f, t) for f, t, cont in calls if not cont]
         finest = [t for f, t, cont in calls if cont]

@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 from moisst_ns.rig.calibration import calibration_report_errors
 from moisst_ns.rig.format import Calibration
 from moisst_ns.rig.trust import finite_or_none
-from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, CameraStageResult
+from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
+from moisst_ns.stages.camera.camera_result import CameraStageResult
 from moisst_ns.stages.lidar.lidar_report import truth_table, write_stage_files
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS, UNITS
 

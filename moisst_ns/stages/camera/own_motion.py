@@ -17,7 +17,8 @@ No nerfstudio import.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
 from typing import Callable, List, Optional, Tuple
 
 import numpy as np
@@ -27,8 +28,10 @@ from jaxtyping import Float, Int
 from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Rig
+from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
+from moisst_ns.stages.camera.camera_result import CameraResult, corrected
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, row_time
-from moisst_ns.stages.camera.camera_guards import SCALE, convergence_tail
+from moisst_ns.stages.camera.camera_guards import PARAMETERS, SCALE, TYPICAL_ERROR, convergence_tail
 from moisst_ns.stages.camera.camera_map import camera_matrix, distortion, ratio_matches, sift_frames, triangulate
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
@@ -271,3 +274,30 @@ def fit_own_motion(traj: ReferenceTrajectory, matches: OwnMatches, surface: MapS
     log(f"[own-motion] {sensor}: {len(kept)} matches on the map within {config.fine_radius:g} m after {len(history) - 1} fine solves; "
         f"held-back loss {result.loss_estimate * 100:.2f} cm (prior {result.loss_prior * 100:.2f} cm)")
     return result
+
+
+OWN = OwnMotionConfig()  # the own-motion fit's settings
+
+
+def own_motion_result(rig: Rig, traj: ReferenceTrajectory, surface: MapSurface, kept: CameraResult, config: CameraRegistrationConfig,
+                      log: Callable[[str], None]) -> CameraResult:
+    """``kept`` (a camera the photometric fit left at its prior against a LiDAR map) placed by its own motion
+    (``own_motion.fit_own_motion``), or ``kept`` again, its note extended, where that fit places nothing, its held-back
+    loss is no lower than the prior's or the drive's halves disagree by more than ``max_split_half`` typical errors.
+    sigma is the largest of the fit's formal, split-half and convergence parts; ``history`` stays the photometric fit's."""
+    begun = time.perf_counter()
+    fit = fit_own_motion(traj, own_matches(rig, kept.sensor, OWN), surface, kept.prior, kept.prior_offset, OWN, log, kept.sensor)
+    apart = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(fit.sigma_split > config.max_split_half * TYPICAL_ERROR)]
+    why = ("its own matches do not lie on the map" if fit is None else
+           f"its own motion's held-back loss {fit.loss_estimate:.4g} m is no lower than the prior's {fit.loss_prior:.4g} m" if not fit.loss_estimate < fit.loss_prior else
+           f"the two halves of the drive place it apart on {', '.join(apart)} by more than {config.max_split_half:g}x a typical prior error" if apart else "")
+    if why:
+        log(f"[camera-registration] {kept.sensor}: {why}; it keeps its prior")
+        return replace(kept, note=f"{kept.note}; by its own motion: {why}")
+    pose, offset = corrected(kept.prior, kept.prior_offset, fit.theta)
+    sigma = np.fmax.reduce([fit.sigma_formal, fit.sigma_split, fit.sigma_convergence])
+    log(f"[camera-registration] {kept.sensor}: the photometric fit kept its prior ({kept.note or 'held-back check'}); placed by its own motion instead")
+    return replace(kept, estimate=pose, time_offset=offset, sigma=sigma.tolist(), cost_prior=fit.loss_prior, cost_estimate=fit.loss_estimate,
+                   kept_prior=False, note="", sigma_formal=fit.sigma_formal.tolist(), sigma_split=fit.sigma_split.tolist(), blind=[], significance=[],
+                   start=f"own motion ({fit.points} of its own matches on the map; the photometric fit: {kept.note or 'held-back check'})",
+                   sigma_resolution=[], sigma_convergence=fit.sigma_convergence.tolist(), held_there=False, wall_s=kept.wall_s + time.perf_counter() - begun)
