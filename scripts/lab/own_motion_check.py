@@ -1,0 +1,53 @@
+"""The own-motion fit (``stages/camera/own_motion.py``) of one camera alone, the map from the LiDAR at its true
+calibration (``--map features``: the reference camera's triangulated features instead): error and error / sigma per
+parameter. docs/lab/2026-12-02-own-motion.md.
+
+Usage: .venv/bin/python scripts/lab/own_motion_check.py RIG CAMERA [--map lidar|features]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from moisst_ns.rig.format import Calibration, load_calibration, load_rig
+from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
+from moisst_ns.rig.trust import PARAMETERS, parameter_difference
+from moisst_ns.stages.camera.camera_map import FeatureMapConfig, feature_map
+from moisst_ns.stages.camera.lidar_map import lidar_map
+from moisst_ns.stages.camera.own_motion import OWN, MapSurface, fit_own_motion, own_matches
+from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, UNITS
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("rig")
+    parser.add_argument("camera")
+    parser.add_argument("--map", choices=("lidar", "features"), default="lidar")
+    args = parser.parse_args()
+    rig, truth = load_rig(args.rig), load_calibration(f"{args.rig}/ground_truth.json")
+    start = Calibration.from_rig(rig)
+    for name, spec in rig.sensors.items():
+        if spec.type == "lidar":
+            start.T_ref_sensor[name], start.time_offset[name] = truth.T_ref_sensor[name], truth.time_offset[name]
+    begun = time.perf_counter()
+    world = lidar_map(rig, start, 0.05, 2.0, print) if args.map == "lidar" else feature_map(rig, start, FeatureMapConfig(patch_points=0), print)
+    prior, offset = np.asarray(start.T_ref_sensor[args.camera]), float(start.time_offset[args.camera])
+    fit = fit_own_motion(ReferenceTrajectory.of(rig), own_matches(rig, args.camera, OWN), MapSurface.of(world, OWN.normal_radius), prior, offset,
+                         OWN, print, args.camera)
+    if fit is None:
+        print(f"RESULT {args.rig} {args.camera}: not placed")
+        return
+    X = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(fit.theta[:3]), torch.from_numpy(fit.theta[3:6])).numpy()
+    error = np.asarray(parameter_difference(truth.T_ref_sensor[args.camera], truth.time_offset[args.camera], X, offset + fit.theta[6]))
+    sigma = np.fmax.reduce([fit.sigma_formal, fit.sigma_split, fit.sigma_baseline, fit.sigma_convergence])[list(JACOBIAN_ORDER)]
+    print(f"RESULT {args.rig} {args.camera}: {np.linalg.norm(error[:3]) * 100:.2f} cm {np.rad2deg(np.linalg.norm(error[3:6])):.3f} deg "
+          f"{abs(error[6]) * 1000:.2f} ms; {time.perf_counter() - begun:.0f} s")
+    print("  error / sigma: " + ", ".join(f"{p} {e * u:.3g} {n} / {s * u:.3g}" for p, e, s, (u, n) in zip(PARAMETERS, error, sigma, UNITS)))
+
+
+if __name__ == "__main__":
+    main()
