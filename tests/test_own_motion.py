@@ -11,7 +11,7 @@ from moisst_ns.datasets.synth import SynthConfig, make_rig
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.camera import camera_registration
+from moisst_ns.stages.camera import own_motion
 from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, CameraResult, own_motion_result
 from moisst_ns.stages.camera.lidar_map import lidar_map
 from moisst_ns.stages.camera.own_motion import MapSurface, OwnMatches, OwnMotionConfig, OwnMotionFit, fit_own_motion, own_cloud, own_matches
@@ -124,20 +124,23 @@ def _kept(prior: np.ndarray) -> CameraResult:
 
 def _fit(split: float, loss: float) -> OwnMotionFit:
     theta = np.array([0.01, -0.02, 0.0, 0.1, -0.05, 0.2, -0.03])
-    return OwnMotionFit(theta, np.full(7, 1e-3), np.full(7, split), np.full(7, 2e-3), 5000, 0.4, loss, [])
+    return OwnMotionFit(theta, np.full(7, 1e-3), np.full(7, split), np.full(7, 1.5e-3), np.full(7, 2e-3), 5000, 0.4, loss, [])
 
 
-@pytest.mark.parametrize("split, loss, placed", [(1e-4, 0.05, True), (0.5, 0.05, False), (1e-4, 0.5, False)])
-def test_a_camera_left_at_its_prior_takes_its_own_motions_fit_only_where_its_guards_pass(monkeypatch, split, loss, placed):
+@pytest.mark.parametrize("split, loss, bound, why", [(1e-4, 0.05, 2.0, ""), (0.5, 0.05, 2.0, "the two halves of the drive place it apart on roll, pitch, yaw, x, y, z"),
+                                                   (1e-4, 0.5, 2.0, "held-back loss 0.5 m is no lower than the prior's 0.4 m"),
+                                                   (1e-4, 0.05, 0.15, "its own motion puts it beyond its bound on z")])
+def test_a_camera_left_at_its_prior_takes_its_own_motions_fit_only_where_its_guards_pass(monkeypatch, split, loss, bound, why):
     """The stage's use of the fit: its corrections applied to the prior (eq. 12), sigma the largest of its parts, the
     photometric fit's reason kept in ``start``; the prior again, the note saying why, when the drive's halves lie 0.5 m /
-    rad / s apart (over 2x a typical error) or the held-back loss is no lower than the prior's."""
-    monkeypatch.setattr(camera_registration, "own_matches", lambda *a: None)
-    monkeypatch.setattr(camera_registration, "fit_own_motion", lambda *a: _fit(split, loss))
+    rad / s apart (over 2x a typical error), the held-back loss is no lower than the prior's, or the fit's 0.2 m lies
+    beyond a translation bound of 0.15 m."""
+    monkeypatch.setattr(own_motion, "own_matches", lambda *a: None)
+    monkeypatch.setattr(own_motion, "fit_own_motion", lambda *a: _fit(split, loss))
     prior = SIDE.copy()
-    r = own_motion_result(None, None, None, _kept(prior), CameraRegistrationConfig(), lambda s: None)
-    assert r.kept_prior is not placed
-    if placed:
+    r = own_motion_result(None, None, None, _kept(prior), CameraRegistrationConfig(max_translation=bound), lambda s: None)
+    assert r.kept_prior is bool(why)
+    if not why:
         theta = _fit(split, loss).theta
         expected = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(theta[:3]), torch.from_numpy(theta[3:6])).numpy()
         np.testing.assert_allclose(r.estimate, expected, atol=1e-12)
@@ -145,4 +148,4 @@ def test_a_camera_left_at_its_prior_takes_its_own_motions_fit_only_where_its_gua
         assert r.start.startswith("own motion (5000 ") and "a wrong minimum" in r.start and r.note == ""
     else:
         np.testing.assert_array_equal(r.estimate, prior)
-        assert r.note.startswith("a wrong minimum; by its own motion: ") and ("halves" in r.note or "held-back loss" in r.note), r.note
+        assert r.note.startswith("a wrong minimum; by its own motion: ") and why in r.note, r.note

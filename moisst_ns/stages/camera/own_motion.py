@@ -31,7 +31,7 @@ from moisst_ns.rig.format import Rig
 from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
 from moisst_ns.stages.camera.camera_result import CameraResult, corrected
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, row_time
-from moisst_ns.stages.camera.camera_guards import PARAMETERS, SCALE, TYPICAL_ERROR, convergence_tail
+from moisst_ns.stages.camera.camera_guards import PARAMETERS, SCALE, TYPICAL_ERROR, bounds, convergence_tail
 from moisst_ns.stages.camera.camera_map import camera_matrix, distortion, ratio_matches, sift_frames, triangulate
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
@@ -283,13 +283,16 @@ def own_motion_result(rig: Rig, traj: ReferenceTrajectory, surface: MapSurface, 
                       log: Callable[[str], None]) -> CameraResult:
     """``kept`` (a camera the photometric fit left at its prior against a LiDAR map) placed by its own motion
     (``own_motion.fit_own_motion``), or ``kept`` again, its note extended, where that fit places nothing, its held-back
-    loss is no lower than the prior's or the drive's halves disagree by more than ``max_split_half`` typical errors.
+    loss is no lower than the prior's, it lies beyond the stage's bounds (``camera_guards.bounds``) or the drive's
+    halves disagree by more than ``max_split_half`` typical errors.
     sigma is the largest of the fit's formal, split-half and convergence parts; ``history`` stays the photometric fit's."""
     begun = time.perf_counter()
     fit = fit_own_motion(traj, own_matches(rig, kept.sensor, OWN), surface, kept.prior, kept.prior_offset, OWN, log, kept.sensor)
     apart = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(fit.sigma_split > config.max_split_half * TYPICAL_ERROR)]
+    beyond = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(np.abs(fit.theta) >= 0.999 * bounds(config))]
     why = ("its own matches do not lie on the map" if fit is None else
            f"its own motion's held-back loss {fit.loss_estimate:.4g} m is no lower than the prior's {fit.loss_prior:.4g} m" if not fit.loss_estimate < fit.loss_prior else
+           f"its own motion puts it beyond its bound on {', '.join(beyond)}" if beyond else
            f"the two halves of the drive place it apart on {', '.join(apart)} by more than {config.max_split_half:g}x a typical prior error" if apart else "")
     if why:
         log(f"[camera-registration] {kept.sensor}: {why}; it keeps its prior")
