@@ -43,14 +43,16 @@ def test_held_back_frames_are_every_fifth_frame_of_the_named_cameras_from_the_th
 def test_no_training_ray_comes_from_a_held_back_frame(refined, step):
     from nerfstudio.utils.eval_utils import eval_setup
 
-    _, _, config_path = refined
+    _, out, config_path = refined
     config, _, _, _ = eval_setup(config_path, test_mode="inference")
     dm_config = config.pipeline.datamanager
-    assert dm_config.held_back_sensors == ("cam_front_right",)
+    stage = json.loads((out / "camera_registration" / "camera_registration.json").read_text())["sensors"]
+    accepted = tuple(n for n, e in stage.items() if not e["kept_prior"])  # the cameras the stage registered are refined
+    assert "cam_front_right" in accepted and dm_config.held_back_sensors == accepted
     torch.manual_seed(0)
     datamanager = dm_config.setup(device="cpu", test_mode="val", world_size=1, local_rank=0)
     held = datamanager.held_back
-    assert int(held.sum()) == 4  # frames 2, 7, 12, 17 of cam_front_right's 20
+    assert int(held.sum()) == 4 * len(accepted)  # frames 2, 7, 12, 17 of each one's 20
     drawn = torch.cat([datamanager.next_train(step)[1]["indices"][:, 0] for _ in range(20)])
     assert not held[drawn].any()
     if step >= 40:  # past the reference-only warm-up, the camera's other frames are drawn
