@@ -43,7 +43,7 @@ def main() -> None:
         return
     X = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(fit.theta[:3]), torch.from_numpy(fit.theta[3:6])).numpy()
     error = np.asarray(parameter_difference(truth.T_ref_sensor[args.camera], truth.time_offset[args.camera], X, offset + fit.theta[6]))
-    sigma = np.fmax.reduce([fit.sigma_formal, fit.sigma_split, fit.sigma_baseline, fit.sigma_convergence])[list(JACOBIAN_ORDER)]
+    sigma = fit.sigma[list(JACOBIAN_ORDER)]
     print(f"RESULT {args.rig} {args.camera}: {np.linalg.norm(error[:3]) * 100:.2f} cm {np.rad2deg(np.linalg.norm(error[3:6])):.3f} deg "
           f"{abs(error[6]) * 1000:.2f} ms; {time.perf_counter() - begun:.0f} s")
     print("  error / sigma: " + ", ".join(f"{p} {e * u:.3g} {n} / {s * u:.3g}" for p, e, s, (u, n) in zip(PARAMETERS, error, sigma, UNITS)))

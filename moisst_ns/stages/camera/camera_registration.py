@@ -16,11 +16,11 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from jaxtyping import Float
-from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trajectory_noise import trajectory_spread
+from moisst_ns.rig.trust import parameter_difference
 from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
 from moisst_ns.stages.camera.camera_map import FeatureMapConfig, feature_map
 from moisst_ns.stages.camera.feature_start import FeatureStartConfig, feature_start
@@ -28,7 +28,7 @@ from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, NoOv
 from moisst_ns.stages.camera.camera_guards import bounds, reference_cost
 from moisst_ns.stages.camera.camera_fit import UNDETERMINED, _descend, register_camera
 from moisst_ns.stages.camera.camera_result import CameraResult, CameraStageResult, corrected as _corrected, prior_kept as _prior_kept
-from moisst_ns.stages.camera.own_motion import OWN, MapSurface, fit_own_motion, own_matches, own_motion_result
+from moisst_ns.stages.camera.own_motion import OWN, MapSurface, OwnMatches, fit_own_motion, own_matches, own_motion_result
 from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 from moisst_ns.stages.lidar.lidar_placement import place_again, place_lidars, trajectory_turn
 from moisst_ns.stages.trust.observability import PARAMETERS as TRUST_ORDER, JACOBIAN_ORDER, UNITS
@@ -45,7 +45,8 @@ def _world(rig: Rig, calibration: Calibration, config: CameraRegistrationConfig,
 
 
 def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrationConfig, source: str, problems: Dict[str, Registration],
-                    results: Dict[str, CameraResult], reference: Optional[CameraFrames], log: Callable[[str], None]) -> Dict[str, CameraResult]:
+                    results: Dict[str, CameraResult], reference: Optional[CameraFrames], log: Callable[[str], None],
+                    own: Optional[Dict[str, OwnMatches]] = None) -> Dict[str, CameraResult]:
     """``results`` with the trajectory part of their sigma: what the errors rig.json states of the trajectory put into
     each camera (``trajectory_noise.trajectory_spread``: ``config.trajectory_draws`` draws; on each the map is rebuilt and
     every camera fitted again from its estimate: at the finest level, as ``_descend`` does there, or by its own motion
@@ -64,16 +65,16 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
         results: their results.
         reference: the reference camera's frames (None: the reference is not a camera).
         log: where progress lines go.
+        own: the matches of the cameras placed by their own motion (``own_motion.own_matches``), refitted so.
 
     Returns:
         The results with ``sigma`` at least the part, per parameter, and ``sigma_trajectory`` (solver order).
     """
     begun = time.perf_counter()
     finest = {n: min(p.camera.levels) for n, p in problems.items()}
-    own = {n: own_matches(rig, n, OWN) for n, r in results.items() if r.start.startswith("own motion")}  # placed by their own motion
-    thetas = {n: np.asarray(r.history[-1]["correction"], dtype=np.float64) if n not in own else
-              np.r_[Rotation.from_matrix(r.prior[:3, :3].T @ r.estimate[:3, :3]).as_rotvec(), r.estimate[:3, 3] - r.prior[:3, 3], r.time_offset - r.prior_offset]
-              for n, r in results.items()}
+    own = own or {}
+    thetas = {n: np.asarray(r.history[-1]["correction"], dtype=np.float64) if n not in own else  # PARAMETERS order -> the solver's
+              np.asarray(parameter_difference(r.prior, r.prior_offset, r.estimate, r.time_offset))[list(JACOBIAN_ORDER)] for n, r in results.items()}
 
     def fit(drawn: Rig) -> Dict[str, Optional[Tuple[np.ndarray, float]]]:
         try:
@@ -168,6 +169,7 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     floor = reference_cost(traj, world, reference, calibration, config) if reference is not None else None
     problems: Dict[str, Registration] = {}
     surface: Optional[MapSurface] = None  # the map's normals, for a camera placed by its own motion
+    own: Dict[str, OwnMatches] = {}  # the matches of those fitted so
     if floor is not None:
         log(f"[camera-registration] {reference_name}'s own photometric cost (its frames against each other): {floor:.4f}")
     for name in cameras:
@@ -199,13 +201,14 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             results[name] = _prior_kept(name, calibration, str(err), rig)
             log(f"[camera-registration] {name}: {err}; it keeps its prior here")
         if config.own_motion and source == "lidar" and results[name].kept_prior and config.estimate_extrinsic and config.estimate_time_offset:
-            surface = surface or MapSurface.of(world, OWN.normal_radius)
-            results[name] = own_motion_result(rig, traj, surface, results[name], config, log)
+            surface, own[name] = surface or MapSurface.of(world, OWN.normal_radius), own_matches(rig, name, OWN)
+            results[name] = own_motion_result(traj, surface, own[name], results[name], config, log)
         r = results[name]
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
     accepted = {n: p for n, p in problems.items() if not results[n].kept_prior}
     if config.trajectory_draws > 0 and rig.trajectory_accuracy.stated() and accepted:
-        results.update(trajectory_part(rig, calibration, config, source, accepted, {n: results[n] for n in accepted}, reference, log))
+        results.update(trajectory_part(rig, calibration, config, source, accepted, {n: results[n] for n in accepted}, reference, log,
+                                       {n: m for n, m in own.items() if n in accepted}))
     scans = {}  # per LiDAR, read once for both placements
     lidars = (place_lidars(rig, out, [n for n in cameras if not results[n].kept_prior], lidar_undetermined or {}, lidar_sigma, log,
                            {n: results[n].sigma for n in cameras}, scans)

@@ -187,7 +187,11 @@ class OwnMotionFit:
     loss_prior: float
     """Held-back loss at the prior: mean distance of the held-back frames' points to the map, capped at the last coarse radius, metres."""
     loss_estimate: float
-    history: List[dict]
+
+    @property
+    def sigma(self) -> Float[np.ndarray, "7"]:
+        """The fit's sigma: the largest of its formal, split-half, baseline and convergence parts."""
+        return np.fmax.reduce([self.sigma_formal, self.sigma_split, self.sigma_baseline, self.sigma_convergence])
 
 
 def _solve(theta: np.ndarray, matches: OwnMatches, surface: MapSurface, radius: float, parallax: float, traj, prior, offset):
@@ -215,12 +219,14 @@ def _loss(theta, matches: OwnMatches, surface: MapSurface, cap: float, traj, pri
 
 def _fine(theta, matches, surface, config, traj, prior, offset, iterations):
     history, solution, kept = [theta.copy()], None, np.zeros(0, dtype=np.int64)
+    before = own_cloud(theta, matches, traj, prior, offset)[0]
     for _ in range(iterations):
-        before = own_cloud(theta, matches, traj, prior, offset)[0]
         theta, kept, solution = _solve(theta, matches, surface, config.fine_radius, config.min_parallax_deg, traj, prior, offset)
         history.append(theta.copy())
-        if solution is None or np.sqrt(np.mean(np.sum((own_cloud(theta, matches, traj, prior, offset)[0] - before) ** 2, 1))) < config.stop_m:
+        after = own_cloud(theta, matches, traj, prior, offset)[0]
+        if solution is None or np.sqrt(np.mean(np.sum((after - before) ** 2, 1))) < config.stop_m:
             break
+        before = after
     return theta, kept, solution, history
 
 
@@ -269,8 +275,7 @@ def fit_own_motion(traj: ReferenceTrajectory, matches: OwnMatches, surface: MapS
     baseline = np.abs(baselines[0] - baselines[1]) / 2
     cap = config.coarse_radii[-1]
     result = OwnMotionFit(theta, np.asarray(formal), split, baseline, convergence_tail(np.asarray(history)), len(kept),
-                          _loss(np.zeros(7), back, surface, cap, *args), _loss(theta, back, surface, cap, *args),
-                          [{"correction": h.tolist()} for h in history])
+                          _loss(np.zeros(7), back, surface, cap, *args), _loss(theta, back, surface, cap, *args))
     log(f"[own-motion] {sensor}: {len(kept)} matches on the map within {config.fine_radius:g} m after {len(history) - 1} fine solves; "
         f"held-back loss {result.loss_estimate * 100:.2f} cm (prior {result.loss_prior * 100:.2f} cm)")
     return result
@@ -279,15 +284,16 @@ def fit_own_motion(traj: ReferenceTrajectory, matches: OwnMatches, surface: MapS
 OWN = OwnMotionConfig()  # the own-motion fit's settings
 
 
-def own_motion_result(rig: Rig, traj: ReferenceTrajectory, surface: MapSurface, kept: CameraResult, config: CameraRegistrationConfig,
-                      log: Callable[[str], None]) -> CameraResult:
+def own_motion_result(traj: ReferenceTrajectory, surface: MapSurface, matches: OwnMatches, kept: CameraResult,
+                      config: CameraRegistrationConfig, log: Callable[[str], None]) -> CameraResult:
     """``kept`` (a camera the photometric fit left at its prior against a LiDAR map) placed by its own motion
-    (``own_motion.fit_own_motion``), or ``kept`` again, its note extended, where that fit places nothing, its held-back
+    (``fit_own_motion`` of its ``matches``), or ``kept`` again, its note extended, where that fit places nothing, its held-back
     loss is no lower than the prior's, it lies beyond the stage's bounds (``camera_guards.bounds``) or the drive's
     halves disagree by more than ``max_split_half`` typical errors.
-    sigma is the largest of the fit's formal, split-half and convergence parts; ``history`` stays the photometric fit's."""
+    sigma is the largest of the fit's formal, split-half, baseline and convergence parts; ``history`` stays the
+    photometric fit's."""
     begun = time.perf_counter()
-    fit = fit_own_motion(traj, own_matches(rig, kept.sensor, OWN), surface, kept.prior, kept.prior_offset, OWN, log, kept.sensor)
+    fit = fit_own_motion(traj, matches, surface, kept.prior, kept.prior_offset, OWN, log, kept.sensor)
     apart = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(fit.sigma_split > config.max_split_half * TYPICAL_ERROR)]
     beyond = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(np.abs(fit.theta) >= 0.999 * bounds(config))]
     why = ("its own matches do not lie on the map" if fit is None else
@@ -298,7 +304,7 @@ def own_motion_result(rig: Rig, traj: ReferenceTrajectory, surface: MapSurface, 
         log(f"[camera-registration] {kept.sensor}: {why}; it keeps its prior")
         return replace(kept, note=f"{kept.note}; by its own motion: {why}")
     pose, offset = corrected(kept.prior, kept.prior_offset, fit.theta)
-    sigma = np.fmax.reduce([fit.sigma_formal, fit.sigma_split, fit.sigma_convergence])
+    sigma = fit.sigma
     log(f"[camera-registration] {kept.sensor}: the photometric fit kept its prior ({kept.note or 'held-back check'}); placed by its own motion instead")
     return replace(kept, estimate=pose, time_offset=offset, sigma=sigma.tolist(), cost_prior=fit.loss_prior, cost_estimate=fit.loss_estimate,
                    kept_prior=False, note="", sigma_formal=fit.sigma_formal.tolist(), sigma_split=fit.sigma_split.tolist(), blind=[], significance=[],
