@@ -572,8 +572,10 @@ def test_patch_points_ring_each_point_in_the_frame_that_sees_it_nearest():
 def test_without_a_lidar_a_camera_sharing_no_view_with_the_reference_keeps_its_prior_and_is_held(tmp_path, monkeypatch):
     """Camera-only rig: the forward-right camera registers against the reference camera's triangulated features
     (measured 1.61 cm / 0.113 deg / 4.61 ms on this 160x120 rig from 86.6 cm / 8.8 deg / 100 ms); the side camera,
-    whose feature start finds no pose, keeps its prior and is held there, with the reason (the measured 320x240
-    camera-only rigs registered it 10-23 cm off with its sigma up to 12x too small: docs/method.md). A camera whose
+    whose feature start finds no pose, is not fitted photometrically (the measured 320x240 camera-only rigs registered
+    it 10-23 cm off with its sigma up to 12x too small: docs/method.md); its own tracks on the trajectory, 157 over
+    this 20-frame drive, do not pass the guards (the drive's halves part), so it keeps its prior and is held there, with
+    both reasons (tests/test_own_motion.py has the 320x240 rig it is placed on). A camera whose
     start had matches enough but did not hold (KITTI's image_01 on plain RANSAC: 12 003 matches) is held too, and the
     note says its start failed, not that it shares no view."""
     folder = make_rig(SynthConfig(out=tmp_path / "rig", seed=2, width=160, height=120, frames=20, perturb="paper", lidar=False))
@@ -587,6 +589,7 @@ def test_without_a_lidar_a_camera_sharing_no_view_with_the_reference_keeps_its_p
     assert after["cam_front_right"]["time_ms"] < 15, after
     assert side.kept_prior and side.held_there
     assert "shares no view with cam_front" in side.note and "the rig has no LiDAR" in side.note
+    assert "; by its own motion: " in side.note
     np.testing.assert_array_equal(result.calibration.T_ref_sensor["cam_left"], start.T_ref_sensor["cam_left"])
     assert result.calibration.time_offset["cam_left"] == start.time_offset["cam_left"]
 

@@ -1,8 +1,9 @@
 """The own-motion fit (``stages/camera/own_motion.py``) of one camera alone, the map from the LiDAR at its true
-calibration (``--map features``: the reference camera's triangulated features instead): error and error / sigma per
-parameter. docs/lab/2026-12-02-own-motion.md.
+calibration (``--map features``: the reference camera's triangulated features instead; ``--map none``: no map, the
+camera's own tracks on the trajectory, ``stages/camera/own_tracks.py``): error and error / sigma per parameter.
+docs/lab/2026-12-02-own-motion.md, docs/lab/2026-12-02-own-tracks.md.
 
-Usage: .venv/bin/python scripts/lab/own_motion_check.py RIG CAMERA [--map lidar|features]
+Usage: .venv/bin/python scripts/lab/own_motion_check.py RIG CAMERA [--map lidar|features|none]
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from moisst_ns.rig.trust import PARAMETERS, parameter_difference
 from moisst_ns.stages.camera.camera_map import FeatureMapConfig, feature_map
 from moisst_ns.stages.camera.lidar_map import lidar_map
 from moisst_ns.stages.camera.own_motion import OWN, MapSurface, fit_own_motion, own_matches
+from moisst_ns.stages.camera.own_tracks import TRACKS, fit_own_tracks
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, UNITS
 
 
@@ -26,7 +28,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("rig")
     parser.add_argument("camera")
-    parser.add_argument("--map", choices=("lidar", "features"), default="lidar")
+    parser.add_argument("--map", choices=("lidar", "features", "none"), default="lidar")
     args = parser.parse_args()
     rig, truth = load_rig(args.rig), load_calibration(f"{args.rig}/ground_truth.json")
     start = Calibration.from_rig(rig)
@@ -34,10 +36,13 @@ def main() -> None:
         if spec.type == "lidar":
             start.T_ref_sensor[name], start.time_offset[name] = truth.T_ref_sensor[name], truth.time_offset[name]
     begun = time.perf_counter()
-    world = lidar_map(rig, start, 0.05, 2.0, print) if args.map == "lidar" else feature_map(rig, start, FeatureMapConfig(patch_points=0), print)
     prior, offset = np.asarray(start.T_ref_sensor[args.camera]), float(start.time_offset[args.camera])
-    fit = fit_own_motion(ReferenceTrajectory.of(rig), own_matches(rig, args.camera, OWN), MapSurface.of(world, OWN.normal_radius), prior, offset,
-                         OWN, print, args.camera)
+    traj, matches = ReferenceTrajectory.of(rig), own_matches(rig, args.camera, OWN)
+    if args.map == "none":
+        fit = fit_own_tracks(traj, matches, float(rig.sensors[args.camera].intrinsics["fl_x"]), prior, offset, TRACKS, print, args.camera)
+    else:
+        world = lidar_map(rig, start, 0.05, 2.0, print) if args.map == "lidar" else feature_map(rig, start, FeatureMapConfig(patch_points=0), print)
+        fit = fit_own_motion(traj, matches, MapSurface.of(world, OWN.normal_radius), prior, offset, OWN, print, args.camera)
     if fit is None:
         print(f"RESULT {args.rig} {args.camera}: not placed")
         return

@@ -3,7 +3,8 @@ over LiDAR-measured, metric geometry (no NeRF): grey levels of map points in a c
 camera's and its own frames some metres away, robust (Huber) least squares on the 7 corrections of eq. 12, coarse to
 fine over an image pyramid, occlusions by a z-buffer, rolling-shutter rows included (``photometric``), each fit
 guarded before it replaces the prior (``camera_fit``, ``camera_guards``); a camera the fit leaves at its prior
-against a LiDAR map placed by its own motion instead (``own_motion``); then a LiDAR whose scans' motion left parameters undetermined
+against a LiDAR map placed by its own motion instead (``own_motion``), one that shares no view with the reference camera
+of a rig without a LiDAR by its own tracks on the reference trajectory (``own_tracks``); then a LiDAR whose scans' motion left parameters undetermined
 against the cameras at the same instants (``lidar_instant``). docs/method.md, "Cameras against the map" and "Guards", has the
 formulation and the measurements. Nothing here imports nerfstudio.
 """
@@ -29,6 +30,7 @@ from moisst_ns.stages.camera.camera_guards import bounds, reference_cost
 from moisst_ns.stages.camera.camera_fit import UNDETERMINED, _descend, register_camera
 from moisst_ns.stages.camera.camera_result import CameraResult, CameraStageResult, corrected as _corrected, prior_kept as _prior_kept
 from moisst_ns.stages.camera.own_motion import OWN, MapSurface, OwnMatches, fit_own_motion, own_matches, own_motion_result
+from moisst_ns.stages.camera.own_tracks import TRACKS, fit_own_tracks
 from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 from moisst_ns.stages.lidar.lidar_placement import place_again, place_lidars, trajectory_turn
 from moisst_ns.stages.trust.observability import PARAMETERS as TRUST_ORDER, JACOBIAN_ORDER, UNITS
@@ -50,7 +52,7 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
     """``results`` with the trajectory part of their sigma: what the errors rig.json states of the trajectory put into
     each camera (``trajectory_noise.trajectory_spread``: ``config.trajectory_draws`` draws; on each the map is rebuilt and
     every camera fitted again from its estimate: at the finest level, as ``_descend`` does there, or by its own motion
-    where it was placed so, ``own_motion.fit_own_motion`` at the fine radius). The estimates do not
+    where it was placed so: ``own_motion.fit_own_motion`` at the fine radius, ``own_tracks.fit_own_tracks``'s track solves). The estimates do not
     change. The map (LiDAR scans or triangulated features) and a camera's own partners are both placed by the trajectory,
     so a noisy one moves the estimate by more than any part measured on the given trajectory can see (realistic rigs
     without a LiDAR, cam_front_right: plaza seed 2's x 2.6 sigma and street seed 3's pitch 3.0 sigma off without this
@@ -82,10 +84,12 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
         except NoMapError:
             return {n: None for n in problems}
         traj, poses = ReferenceTrajectory.of(drawn), {}
-        surface = MapSurface.of(world, OWN.normal_radius) if own else None
+        surface = MapSurface.of(world, OWN.normal_radius) if own and source == "lidar" else None
         for name, problem in problems.items():
             if name in own:  # refitted by its own motion, from its estimate
-                again = fit_own_motion(traj, own[name], surface, results[name].prior, results[name].prior_offset, OWN, lambda _: None, name, thetas[name])
+                prior = (results[name].prior, results[name].prior_offset)
+                again = (fit_own_motion(traj, own[name], surface, *prior, OWN, lambda _: None, name, thetas[name]) if surface is not None else
+                         fit_own_tracks(traj, own[name], float(rig.sensors[name].intrinsics["fl_x"]), *prior, TRACKS, lambda _: None, name, thetas[name]))
                 poses[name] = None if again is None else _corrected(results[name].prior, results[name].prior_offset, again.theta)
                 continue
             settings = replace(config, estimate_readout=len(thetas[name]) > 7)  # as the result was fitted (readout refit: without)
@@ -183,26 +187,32 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
                                     rig.sensors[name].intrinsics, bounds(config), START, log)
             if initial.theta is None:
                 log(f"[camera-registration] {name}: {initial.note}")
-        if source == "features" and initial is not None and initial.theta is None:  # neither this stage nor the NeRF can place it
+        own_motion = config.own_motion and config.estimate_extrinsic and config.estimate_time_offset
+        if source == "features" and initial is not None and initial.theta is None:  # no photometric fit can place it
             lost = f"its start on {reference_name}'s features failed" if initial.matches >= START.min_inliers * START.min_frames else f"it shares no view with {reference_name}"
             why = (f"{lost} ({initial.note}) and {why_source or 'the rig has no LiDAR'}: fitted to "
                    f"{reference_name}'s triangulated features alone, it inherits their errors, which none of its sigma parts sees")
             results[name] = replace(_prior_kept(name, calibration, why, rig), held_there=True)
-            log(f"[camera-registration] {name}: {why}; it keeps its prior, not fitted")
-            continue
-        try:
-            results[name] = register_camera(problem, config, log, floor, initial)
-            if results[name].readout_note.startswith(UNDETERMINED):  # refitted with rig.json's readout, which it keeps
-                log(f"[camera-registration] {name}: {results[name].readout_note}; refitting with it")
-                again = Registration(traj, world, problem.camera, reference, calibration, config)
-                results[name] = replace(register_camera(again, replace(config, estimate_readout=False), log, floor, initial),
-                                        **{k: getattr(results[name], k) for k in ("readout_estimate", "readout_sigma", "readout_note")})
-        except NoOverlapError as err:
-            results[name] = _prior_kept(name, calibration, str(err), rig)
-            log(f"[camera-registration] {name}: {err}; it keeps its prior here")
-        if config.own_motion and source == "lidar" and results[name].kept_prior and config.estimate_extrinsic and config.estimate_time_offset:
-            surface, own[name] = surface or MapSurface.of(world, OWN.normal_radius), own_matches(rig, name, OWN)
-            results[name] = own_motion_result(traj, surface, own[name], results[name], config, log)
+            log(f"[camera-registration] {name}: {why}; " + ("placing it by its own tracks on the trajectory" if own_motion else "it keeps its prior, not fitted"))
+            if own_motion:  # against the trajectory alone
+                begun, own[name] = time.perf_counter(), own_matches(rig, name, OWN)
+                fit = fit_own_tracks(traj, own[name], float(rig.sensors[name].intrinsics["fl_x"]), results[name].prior, results[name].prior_offset, TRACKS, log, name)
+                results[name] = own_motion_result(fit, results[name], config, log, begun, source)
+        else:
+            try:
+                results[name] = register_camera(problem, config, log, floor, initial)
+                if results[name].readout_note.startswith(UNDETERMINED):  # refitted with rig.json's readout, which it keeps
+                    log(f"[camera-registration] {name}: {results[name].readout_note}; refitting with it")
+                    again = Registration(traj, world, problem.camera, reference, calibration, config)
+                    results[name] = replace(register_camera(again, replace(config, estimate_readout=False), log, floor, initial),
+                                            **{k: getattr(results[name], k) for k in ("readout_estimate", "readout_sigma", "readout_note")})
+            except NoOverlapError as err:
+                results[name] = _prior_kept(name, calibration, str(err), rig)
+                log(f"[camera-registration] {name}: {err}; it keeps its prior here")
+            if own_motion and source == "lidar" and results[name].kept_prior:  # on the map
+                begun, surface, own[name] = time.perf_counter(), surface or MapSurface.of(world, OWN.normal_radius), own_matches(rig, name, OWN)
+                fit = fit_own_motion(traj, own[name], surface, results[name].prior, results[name].prior_offset, OWN, log, name)
+                results[name] = own_motion_result(fit, results[name], config, log, begun)
         r = results[name]
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
     accepted = {n: p for n, p in problems.items() if not results[n].kept_prior}

@@ -87,10 +87,14 @@ class OwnMatches:
     """The frames' stamps, seconds since the trajectory's first."""
     readout: float
     height: int
+    key_a: Optional[Int[np.ndarray, "n"]] = None
+    """The first observation's keypoint, numbered over all the camera's frames (``own_tracks.tracks`` chains them)."""
+    key_b: Optional[Int[np.ndarray, "n"]] = None
 
     def subset(self, keep: np.ndarray) -> "OwnMatches":
+        keys = [None if k is None else k[keep] for k in (self.key_a, self.key_b)]
         return OwnMatches(self.frame_a[keep], self.frame_b[keep], self.xy_a[keep], self.xy_b[keep], self.row_a[keep], self.row_b[keep],
-                          self.stamps, self.readout, self.height)
+                          self.stamps, self.readout, self.height, *keys)
 
 
 @dataclass
@@ -129,6 +133,7 @@ def own_matches(rig: Rig, name: str, config: OwnMotionConfig) -> OwnMatches:
     frames = sorted(rig.frames_of(name), key=lambda f: f.timestamp)
     K, dist = camera_matrix(spec.intrinsics), distortion(spec.intrinsics)
     keys, descs = sift_frames(rig, frames, config.features)
+    first = np.cumsum([0] + [len(k) for k in keys])  # each frame's first keypoint's number
     parts = []
     for a in range(len(frames)):
         for b in range(a + 1, min(a + 1 + config.max_gap, len(frames))):
@@ -140,11 +145,13 @@ def own_matches(rig: Rig, name: str, config: OwnMotionConfig) -> OwnMatches:
             if E is None:
                 continue
             m = mask.ravel().astype(bool)
-            parts.append((np.full(m.sum(), a), np.full(m.sum(), b), xy[0][m], xy[1][m], keys[a][ia][m, 1] + 0.5, keys[b][ib][m, 1] + 0.5))
-    empty = (np.zeros(0), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+            parts.append((np.full(m.sum(), a), np.full(m.sum(), b), xy[0][m], xy[1][m], keys[a][ia][m, 1] + 0.5, keys[b][ib][m, 1] + 0.5,
+                          first[a] + ia[m], first[b] + ib[m]))
+    empty = (np.zeros(0), np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
     cat = [np.concatenate(c) for c in zip(*(parts or [empty]))]
     stamps = np.array([f.timestamp for f in frames], dtype=np.float64) - float(rig.trajectory_stamps[0])
-    return OwnMatches(cat[0].astype(np.int64), cat[1].astype(np.int64), *cat[2:], stamps, float(spec.readout_time), int(spec.intrinsics["h"]))
+    return OwnMatches(cat[0].astype(np.int64), cat[1].astype(np.int64), *cat[2:6], stamps, float(spec.readout_time), int(spec.intrinsics["h"]),
+                      cat[6].astype(np.int64), cat[7].astype(np.int64))
 
 
 def own_cloud(theta: Float[np.ndarray, "7"], matches: OwnMatches, traj: ReferenceTrajectory, prior: Float[np.ndarray, "4 4"],
@@ -284,29 +291,30 @@ def fit_own_motion(traj: ReferenceTrajectory, matches: OwnMatches, surface: MapS
 OWN = OwnMotionConfig()  # the own-motion fit's settings
 
 
-def own_motion_result(traj: ReferenceTrajectory, surface: MapSurface, matches: OwnMatches, kept: CameraResult,
-                      config: CameraRegistrationConfig, log: Callable[[str], None]) -> CameraResult:
-    """``kept`` (a camera the photometric fit left at its prior against a LiDAR map) placed by its own motion
-    (``fit_own_motion`` of its ``matches``), or ``kept`` again, its note extended, where that fit places nothing, its held-back
-    loss is no lower than the prior's, it lies beyond the stage's bounds (``camera_guards.bounds``) or the drive's
-    halves disagree by more than ``max_split_half`` typical errors.
-    sigma is the largest of the fit's formal, split-half, baseline and convergence parts; ``history`` stays the
-    photometric fit's."""
-    begun = time.perf_counter()
-    fit = fit_own_motion(traj, matches, surface, kept.prior, kept.prior_offset, OWN, log, kept.sensor)
+def own_motion_result(fit: Optional[OwnMotionFit], kept: CameraResult, config: CameraRegistrationConfig, log: Callable[[str], None],
+                      begun: float, source: str = "lidar") -> CameraResult:
+    """``kept`` (a camera the photometric fit left at its prior, or could not fit) placed by its own motion: ``fit``, of
+    its matches against the LiDAR map (``fit_own_motion``, ``source`` "lidar") or its tracks against the trajectory alone
+    (``own_tracks.fit_own_tracks``, "features"); or ``kept`` again, its note extended, where the fit places nothing
+    (None), its held-back loss is no lower than the prior's, it lies beyond the stage's bounds (``camera_guards.bounds``)
+    or the drive's halves disagree by more than ``max_split_half`` typical errors. sigma is ``OwnMotionFit.sigma``;
+    ``history`` stays the photometric fit's; ``begun``: when the fit began (``time.perf_counter``)."""
+    on_map = source == "lidar"
+    unit = "m" if on_map else "px"
     apart = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(fit.sigma_split > config.max_split_half * TYPICAL_ERROR)]
     beyond = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(np.abs(fit.theta) >= 0.999 * bounds(config))]
-    why = ("its own matches do not lie on the map" if fit is None else
-           f"its own motion's held-back loss {fit.loss_estimate:.4g} m is no lower than the prior's {fit.loss_prior:.4g} m" if not fit.loss_estimate < fit.loss_prior else
+    why = (("its own matches do not lie on the map" if on_map else "its own tracks do not agree on the trajectory's poses") if fit is None else
+           f"its own motion's held-back loss {fit.loss_estimate:.4g} {unit} is no lower than the prior's {fit.loss_prior:.4g} {unit}" if not fit.loss_estimate < fit.loss_prior else
            f"its own motion puts it beyond its bound on {', '.join(beyond)}" if beyond else
            f"the two halves of the drive place it apart on {', '.join(apart)} by more than {config.max_split_half:g}x a typical prior error" if apart else "")
     if why:
         log(f"[camera-registration] {kept.sensor}: {why}; it keeps its prior")
         return replace(kept, note=f"{kept.note}; by its own motion: {why}")
     pose, offset = corrected(kept.prior, kept.prior_offset, fit.theta)
-    sigma = fit.sigma
-    log(f"[camera-registration] {kept.sensor}: the photometric fit kept its prior ({kept.note or 'held-back check'}); placed by its own motion instead")
-    return replace(kept, estimate=pose, time_offset=offset, sigma=sigma.tolist(), cost_prior=fit.loss_prior, cost_estimate=fit.loss_estimate,
+    what = f"{fit.points} of its own matches on the map" if on_map else f"{fit.points} of its own tracks on the reference trajectory's poses"
+    log(f"[camera-registration] {kept.sensor}: " + (f"the photometric fit kept its prior ({kept.note or 'held-back check'}); placed by its own motion instead"
+                                                     if on_map else "placed by its own tracks on the trajectory"))
+    return replace(kept, estimate=pose, time_offset=offset, sigma=fit.sigma.tolist(), cost_prior=fit.loss_prior, cost_estimate=fit.loss_estimate,
                    kept_prior=False, note="", sigma_formal=fit.sigma_formal.tolist(), sigma_split=fit.sigma_split.tolist(), blind=[], significance=[],
-                   start=f"own motion ({fit.points} of its own matches on the map; the photometric fit: {kept.note or 'held-back check'})",
+                   start=f"own motion ({what}; {'the photometric fit' if on_map else 'alone'}: {kept.note or 'held-back check'})",
                    sigma_resolution=[], sigma_convergence=fit.sigma_convergence.tolist(), held_there=False, wall_s=kept.wall_s + time.perf_counter() - begun)
