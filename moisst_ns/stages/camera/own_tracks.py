@@ -14,8 +14,8 @@ those poses, the trajectory giving the scale:
   with a view beyond ``thresholds_px`` at the current estimate are dropped (mismatches that pass a pair's epipolar
   RANSAC chain into tracks no point explains), the thresholds shrinking as the estimate settles.
 ``scipy.optimize.least_squares`` (soft L1) on the 7 corrections of eq. 12 throughout. A planar drive turns about one
-axis, which leaves the lever arm along it undetermined: its sigma says so (the formal part, clustered by frame, and the
-split halves of the drive). Measured: docs/lab/2026-12-02-own-tracks.md. No nerfstudio import.
+axis, which leaves the lever arm along it undetermined: its sigma says so (the formal part, clustered by frame; the
+split halves of the drive; the short and the long tracks each fitted alone). Measured: docs/lab/2026-12-02-own-tracks.md. No nerfstudio import.
 """
 
 from __future__ import annotations
@@ -52,6 +52,10 @@ class OwnTracksConfig:
     """Fewer tracks of at least 3 views kept at the last threshold: the camera is not placed."""
     hold_out: int = 5
     """Every ``hold_out``-th track is held back from the fit for its held-back loss."""
+    short_span: int = 3
+    """The baseline part of sigma: the tracks spanning at most this many frames and the longer ones, each fitted alone;
+    the farther of the two from the whole (a bias of the long baselines' far points, which the formal part and the
+    halves share: idealised plaza seed 1's roll, 10 -> 1.7 sigma)."""
 
 
 @dataclass
@@ -205,8 +209,13 @@ def fit_own_tracks(traj: ReferenceTrajectory, matches: OwnMatches, focal: float,
     np.minimum.at(first, kept.track, kept.frame)
     halves = [_refine(theta, kept.subset(h[kept.track]), focal, config, args, config.thresholds_px[-1:])[0] for h in (first < middle, first >= middle)]
     split = np.max([np.abs(h - theta) for h in halves], axis=0)
+    last = np.zeros(kept.count, dtype=np.int64)
+    np.maximum.at(last, kept.track, kept.frame)
+    short = (last - first <= config.short_span)[kept.track]
+    spans = [_refine(theta, kept.subset(h), focal, config, args, config.thresholds_px[-1:])[0] for h in (short, ~short)]
+    baseline = np.max([np.abs(h - theta) for h in spans], axis=0)
     cap = config.thresholds_px[0]
-    result = OwnMotionFit(theta, np.asarray(formal), split, np.zeros(7), np.zeros(7), kept.count, _loss(np.zeros(7), back, focal, cap, args),
+    result = OwnMotionFit(theta, np.asarray(formal), split, baseline, np.zeros(7), kept.count, _loss(np.zeros(7), back, focal, cap, args),
                           _loss(theta, back, focal, cap, args))
     log(f"[own-tracks] {sensor}: {kept.count} tracks agree within {config.thresholds_px[-1]:g} px (median {np.median(np.abs(pixels)):.3f} px); "
         f"held-back loss {result.loss_estimate:.3f} px (prior {result.loss_prior:.3f} px)")
