@@ -13,10 +13,8 @@ from moisst_ns.datasets.synth import SynthConfig, make_rig
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.camera import own_motion
-from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, CameraResult, own_motion_result
+from moisst_ns.stages.camera.camera_registration import CameraRegistrationConfig, CameraResult, own_motion_result, register_cameras
 from moisst_ns.stages.camera.lidar_map import lidar_map
-from moisst_ns.stages.camera.camera_registration import register_cameras
 from moisst_ns.stages.camera.own_tracks import OwnTracksConfig, fit_own_tracks, sampson_px, tracks
 from moisst_ns.stages.camera.own_motion import MapSurface, OwnMatches, OwnMotionConfig, OwnMotionFit, fit_own_motion, own_cloud, own_matches
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER
@@ -57,6 +55,20 @@ def _matches(traj: ReferenceTrajectory, X: np.ndarray, delta: float, world: np.n
     return OwnMatches(fa, fb, xa, xb, np.zeros(len(fa)), np.zeros(len(fa)), stamps, 0.0, 240, *keys), seen
 
 
+def _error(prior, prior_offset, theta, truth, truth_offset):
+    """The estimate minus the truth: translation m, rotation rad, delta s (``parameter_difference``)."""
+    X = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(theta[:3]), torch.from_numpy(theta[3:6])).numpy()
+    return np.asarray(parameter_difference(truth, truth_offset, X, prior_offset + theta[6]))
+
+
+def _perturbed() -> np.ndarray:
+    """The side camera's extrinsic 30 cm and 3 deg off on every axis."""
+    prior = SIDE.copy()
+    prior[:3, :3] = SIDE[:3, :3] @ roma.rotvec_to_rotmat(torch.tensor(np.deg2rad([3.0, -3.0, 3.0]))).numpy()
+    prior[:3, 3] += [0.3, -0.3, 0.3]
+    return prior
+
+
 def _street(spacing: float = 0.1) -> np.ndarray:
     """Reference-frame world (y down): the ground 1.6 m below, a façade 6 m to the left, cross walls every 12 m."""
     u = np.arange(-5.0, 60.0, spacing)
@@ -93,12 +105,9 @@ def test_exact_matches_on_a_turning_accelerating_drive_place_the_camera_from_a_c
     world = _street(0.1)
     stamps = np.arange(0.3, 3.2, 0.1)
     matches, _ = _matches(traj, SIDE, 0.03, world, stamps, rng)
-    prior = SIDE.copy()
-    prior[:3, :3] = SIDE[:3, :3] @ roma.rotvec_to_rotmat(torch.tensor(np.deg2rad([3.0, -3.0, 3.0]))).numpy()
-    prior[:3, 3] += [0.3, -0.3, 0.3]
+    prior = _perturbed()
     fit = fit_own_motion(traj, matches, MapSurface.of(world, 0.3), prior, 0.11, OwnMotionConfig(min_points=200), lambda s: None)
-    X = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(fit.theta[:3]), torch.from_numpy(fit.theta[3:6])).numpy()
-    d = np.asarray(parameter_difference(SIDE, 0.03, X, 0.11 + fit.theta[6]))
+    d = _error(prior, 0.11, fit.theta, SIDE, 0.03)
     assert np.all(np.abs(d) < 1e-6), d
     assert fit.loss_estimate < 0.2 * fit.loss_prior
 
@@ -117,8 +126,7 @@ def test_a_side_camera_is_placed_by_its_own_images_against_the_lidar_map(rig160)
     surface = MapSurface.of(lidar_map(rig, truth, 0.05, 2.0, lambda s: None), config.normal_radius)
     prior, offset = np.asarray(rig.sensors["cam_left"].T_ref_sensor), float(rig.sensors["cam_left"].time_offset)
     fit = fit_own_motion(ReferenceTrajectory.of(rig), own_matches(rig, "cam_left", config), surface, prior, offset, config, lambda s: None)
-    X = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(fit.theta[:3]), torch.from_numpy(fit.theta[3:6])).numpy()
-    d = np.asarray(parameter_difference(truth.T_ref_sensor["cam_left"], truth.time_offset["cam_left"], X, offset + fit.theta[6]))
+    d = _error(prior, offset, fit.theta, truth.T_ref_sensor["cam_left"], truth.time_offset["cam_left"])
     assert np.linalg.norm(d[:3]) < 0.03 and np.rad2deg(np.linalg.norm(d[3:6])) < 0.2 and abs(d[6]) < 0.002, d
     sigma = fit.sigma[list(JACOBIAN_ORDER)]
     assert np.all(np.abs(d) < 3 * sigma), np.abs(d) / sigma
@@ -155,12 +163,6 @@ def test_a_camera_left_at_its_prior_takes_its_own_motions_fit_only_where_its_gua
         assert r.note.startswith("a wrong minimum; by its own motion: ") and why in r.note, r.note
 
 
-def _error(prior, prior_offset, theta, truth, truth_offset):
-    """The estimate minus the truth: translation m, rotation rad, delta s (``parameter_difference``)."""
-    X = calibrated_extrinsic(torch.from_numpy(prior), torch.from_numpy(theta[:3]), torch.from_numpy(theta[3:6])).numpy()
-    return np.asarray(parameter_difference(truth, truth_offset, X, prior_offset + theta[6]))
-
-
 def test_exact_tracks_on_a_steady_turn_give_the_rotation_and_say_the_lever_arm_and_offset_are_undetermined():
     """Exact matches of a drive that turns about the reference's y axis at a steady rate: they chain into tracks of one
     point each, the epipolar residual vanishes at the truth, and from 30 cm / 3 deg / 80 ms the fit ends at the true
@@ -175,9 +177,7 @@ def test_exact_tracks_on_a_steady_turn_give_the_rotation_and_say_the_lever_arm_a
     assert len(np.unique(chained.track * points + chained.key % points)) == chained.count  # each track one point
     assert len(chained.key) == len(np.unique(np.r_[matches.key_a, matches.key_b]))  # every keypoint matched, once
     assert np.abs(sampson_px(np.r_[np.zeros(6), 0.03], matches, 200.0, traj, SIDE, 0.0)).max() < 1e-6
-    prior = SIDE.copy()
-    prior[:3, :3] = SIDE[:3, :3] @ roma.rotvec_to_rotmat(torch.tensor(np.deg2rad([3.0, -3.0, 3.0]))).numpy()
-    prior[:3, 3] += [0.3, -0.3, 0.3]
+    prior = _perturbed()
     fit = fit_own_tracks(traj, matches, 200.0, prior, 0.11, OwnTracksConfig(), lambda s: None)
     d = _error(prior, 0.11, fit.theta, SIDE, 0.03)
     assert np.all(np.abs(d[3:6]) < 1e-6), d

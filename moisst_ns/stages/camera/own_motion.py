@@ -154,20 +154,25 @@ def own_matches(rig: Rig, name: str, config: OwnMotionConfig) -> OwnMatches:
                       cat[6].astype(np.int64), cat[7].astype(np.int64))
 
 
+def observation_poses(theta: Float[np.ndarray, "7"], frame: Int[np.ndarray, "n"], row: Float[np.ndarray, "n"], stamps: Float[np.ndarray, "frames"],
+                      readout: float, height: int, traj: ReferenceTrajectory, prior: Float[np.ndarray, "4 4"],
+                      prior_offset: float) -> Float[np.ndarray, "n 4 4"]:
+    """``world_T_c`` of each observation (its frame, its image row) at the corrections ``theta`` (rotation vector rad,
+    lever arm m, delta s; eq. 12): eq. 2 at the frame's stamp, each row at its own time under a rolling shutter."""
+    th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
+    X = calibrated_extrinsic(torch.from_numpy(np.asarray(prior, dtype=np.float64)), th[:3], th[3:6])
+    at = prior_offset + float(theta[6])
+    if readout:
+        return (traj(torch.from_numpy(stamps[frame] + at + row_time(row, readout, height))) @ X).numpy()
+    return (traj(torch.from_numpy(stamps + at)) @ X).numpy()[frame]
+
+
 def own_cloud(theta: Float[np.ndarray, "7"], matches: OwnMatches, traj: ReferenceTrajectory, prior: Float[np.ndarray, "4 4"],
               prior_offset: float, min_parallax_deg: float = 0.0) -> Tuple[Float[np.ndarray, "n 3"], np.ndarray]:
     """The matches triangulated from the camera's poses at the corrections ``theta`` (rotation vector rad, lever arm m,
     delta s; eq. 12), world frame, metres; and which are in front of both views with at least ``min_parallax_deg``."""
-    th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
-    X = calibrated_extrinsic(torch.from_numpy(np.asarray(prior, dtype=np.float64)), th[:3], th[3:6])
-    at = prior_offset + float(theta[6])
-    if matches.readout:
-        t = [torch.from_numpy(matches.stamps[f] + at + row_time(r, matches.readout, matches.height)) for f, r in
-             ((matches.frame_a, matches.row_a), (matches.frame_b, matches.row_b))]
-        poses = [(traj(ti) @ X).numpy() for ti in t]
-    else:
-        frame = (traj(torch.from_numpy(matches.stamps + at)) @ X).numpy()
-        poses = [frame[matches.frame_a], frame[matches.frame_b]]
+    poses = [observation_poses(theta, f, r, matches.stamps, matches.readout, matches.height, traj, prior, prior_offset)
+             for f, r in ((matches.frame_a, matches.row_a), (matches.frame_b, matches.row_b))]
     proj = [np.linalg.inv(p)[:, :3] for p in poses]
     world = triangulate(proj[0], proj[1], matches.xy_a, matches.xy_b)
     depth = [np.einsum("nj,nj->n", q[:, 2, :3], np.nan_to_num(world)) + q[:, 2, 3] for q in proj]
@@ -186,13 +191,16 @@ class OwnMotionFit:
     sigma_split: Float[np.ndarray, "7"]
     """The farther half of the drive's fit from the whole's."""
     sigma_baseline: Float[np.ndarray, "7"]
-    """Half the difference of the fits of the next frame's matches and of the farther ones' (the triangulation's error
-    falls with the baseline: where they part, its bias does)."""
+    """On the map: half the difference of the fits of the next frame's matches and of the farther ones' (the
+    triangulation's error falls with the baseline: where they part, its bias does); by own tracks: the farther of the
+    short and the long tracks' fits from the whole (``own_tracks.OwnTracksConfig.short_span``)."""
     sigma_convergence: Float[np.ndarray, "7"]
+    """On the map: the descent's remaining distance (``convergence_tail``); by own tracks: zeros."""
     points: int
-    """Matches on the map at the fine radius."""
+    """Matches on the map at the fine radius; by own tracks: tracks kept."""
     loss_prior: float
-    """Held-back loss at the prior: mean distance of the held-back frames' points to the map, capped at the last coarse radius, metres."""
+    """Held-back loss at the prior: mean distance of the held-back frames' points to the map, capped at the last coarse
+    radius, metres; by own tracks: mean angle of the held-back tracks' observations to their points, capped, pixels."""
     loss_estimate: float
 
     @property

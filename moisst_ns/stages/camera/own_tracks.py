@@ -24,15 +24,14 @@ from dataclasses import dataclass
 from typing import Callable, Optional, Tuple
 
 import numpy as np
-import torch
 from jaxtyping import Float, Int
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, row_time
+from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.stages.camera.camera_guards import SCALE
-from moisst_ns.stages.camera.own_motion import OwnMatches, OwnMotionFit
+from moisst_ns.stages.camera.own_motion import OwnMatches, OwnMotionFit, observation_poses
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
 
@@ -101,20 +100,9 @@ def tracks(matches: OwnMatches) -> Tracks:
     return out.subset(~np.isin(label, clash))
 
 
-def _poses(theta: np.ndarray, frame: np.ndarray, row: np.ndarray, stamps: np.ndarray, readout: float, height: int,
-           traj: ReferenceTrajectory, prior: np.ndarray, offset: float) -> Float[np.ndarray, "n 4 4"]:
-    """``world_T_c`` of each observation at the corrections ``theta`` (eq. 2, its row's time under a rolling shutter)."""
-    th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
-    X = calibrated_extrinsic(torch.from_numpy(np.asarray(prior, dtype=np.float64)), th[:3], th[3:6])
-    at = offset + float(theta[6])
-    if readout:
-        return (traj(torch.from_numpy(stamps[frame] + at + row_time(row, readout, height))) @ X).numpy()
-    return (traj(torch.from_numpy(stamps + at)) @ X).numpy()[frame]
-
-
 def sampson_px(theta, matches: OwnMatches, focal: float, traj, prior, offset) -> Float[np.ndarray, "n"]:
     """Each match's signed Sampson distance to the epipolar geometry of its two poses at ``theta``, pixels."""
-    poses = [_poses(theta, f, r, matches.stamps, matches.readout, matches.height, traj, prior, offset)
+    poses = [observation_poses(theta, f, r, matches.stamps, matches.readout, matches.height, traj, prior, offset)
              for f, r in ((matches.frame_a, matches.row_a), (matches.frame_b, matches.row_b))]
     b_T_a = np.linalg.inv(poses[1]) @ poses[0]
     R, t = b_T_a[:, :3, :3], b_T_a[:, :3, 3] / np.maximum(np.linalg.norm(b_T_a[:, :3, 3], axis=1, keepdims=True), 1e-12)
@@ -128,7 +116,7 @@ def sampson_px(theta, matches: OwnMatches, focal: float, traj, prior, offset) ->
 def track_px(theta, obs: Tracks, focal: float, traj, prior, offset) -> Float[np.ndarray, "n2"]:
     """Each observation's angle to its track's point (the midpoint of the track's rays at ``theta``), in pixels at the
     image centre (x and y of the unit-vector difference, times the focal length)."""
-    poses = _poses(theta, obs.frame, obs.row, obs.stamps, obs.readout, obs.height, traj, prior, offset)
+    poses = observation_poses(theta, obs.frame, obs.row, obs.stamps, obs.readout, obs.height, traj, prior, offset)
     ray = np.c_[obs.xy, np.ones(len(obs.xy))]
     ray /= np.linalg.norm(ray, axis=1, keepdims=True)
     d = np.einsum("nij,nj->ni", poses[:, :3, :3], ray)
