@@ -1,6 +1,7 @@
 """The own-motion fit (``stages/camera/own_motion.py``) of one camera alone, the map from the LiDAR at its true
 calibration (``--map features``: the reference camera's triangulated features instead; ``--map none``: no map, the
-camera's own tracks on the trajectory, ``stages/camera/own_tracks.py``): error and error / sigma per parameter.
+camera's own tracks on the trajectory, ``stages/camera/own_tracks.py``, and the parameters the drive names weak for it):
+error and error / sigma per parameter.
 docs/lab/2026-12-02-own-motion.md, docs/lab/2026-12-02-own-tracks.md.
 
 Usage: .venv/bin/python scripts/lab/own_motion_check.py RIG CAMERA [--map lidar|features|none]
@@ -20,7 +21,7 @@ from moisst_ns.rig.trust import PARAMETERS, parameter_difference
 from moisst_ns.stages.camera.camera_map import FeatureMapConfig, feature_map
 from moisst_ns.stages.camera.lidar_map import lidar_map
 from moisst_ns.stages.camera.own_motion import OWN, MapSurface, fit_own_motion, own_matches
-from moisst_ns.stages.camera.own_tracks import TRACKS, fit_own_tracks
+from moisst_ns.stages.camera.own_tracks import TRACKS, fit_own_tracks, weak_by_motion
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, UNITS
 
 
@@ -51,6 +52,10 @@ def main() -> None:
     sigma = fit.sigma[list(JACOBIAN_ORDER)]
     print(f"RESULT {args.rig} {args.camera}: {np.linalg.norm(error[:3]) * 100:.2f} cm {np.rad2deg(np.linalg.norm(error[3:6])):.3f} deg "
           f"{abs(error[6]) * 1000:.2f} ms; {time.perf_counter() - begun:.0f} s")
+    if args.map == "none":  # the parameters the drive's own motion leaves weak (named so by the stage)
+        weak = weak_by_motion(traj, matches, prior, offset, lambda _: None, args.camera)
+        rest = [i for i, p in enumerate(PARAMETERS[:3]) if p not in weak]
+        print(f"  weak: {', '.join(weak) or 'none'}; the lever arm without them {np.linalg.norm(error[rest]) * 100:.2f} cm")
     print("  error / sigma: " + ", ".join(f"{p} {e * u:.3g} {n} / {s * u:.3g}" for p, e, s, (u, n) in zip(PARAMETERS, error, sigma, UNITS)))
 
 

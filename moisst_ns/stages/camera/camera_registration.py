@@ -30,7 +30,7 @@ from moisst_ns.stages.camera.camera_guards import bounds, reference_cost
 from moisst_ns.stages.camera.camera_fit import UNDETERMINED, _descend, register_camera
 from moisst_ns.stages.camera.camera_result import CameraResult, CameraStageResult, corrected as _corrected, prior_kept as _prior_kept
 from moisst_ns.stages.camera.own_motion import OWN, MapSurface, OwnMatches, fit_own_motion, own_matches, own_motion_result
-from moisst_ns.stages.camera.own_tracks import TRACKS, fit_own_tracks
+from moisst_ns.stages.camera.own_tracks import TRACKS, fit_own_tracks, weak_by_motion
 from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 from moisst_ns.stages.lidar.lidar_placement import place_again, place_lidars, trajectory_turn
 from moisst_ns.stages.trust.observability import PARAMETERS as TRUST_ORDER, JACOBIAN_ORDER, UNITS
@@ -198,6 +198,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
                 begun, own[name] = time.perf_counter(), own_matches(rig, name, OWN)
                 fit = fit_own_tracks(traj, own[name], float(rig.sensors[name].intrinsics["fl_x"]), results[name].prior, results[name].prior_offset, TRACKS, log, name)
                 results[name] = own_motion_result(fit, results[name], config, log, begun, source)
+                if not results[name].kept_prior:  # what its own motion cannot fix on this drive
+                    results[name] = replace(results[name], weak=weak_by_motion(traj, own[name], results[name].prior, results[name].prior_offset, log, name))
         else:
             try:
                 results[name] = register_camera(problem, config, log, floor, initial)

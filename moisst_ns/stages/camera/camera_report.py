@@ -28,8 +28,8 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
 
     ``sigma`` (and its parts ``sigma_formal``, ``sigma_split_half``, ``sigma_resolution``, ``sigma_convergence``, and
     ``sigma_trajectory`` where rig.json states the trajectory's errors) is in the trust order (``x, y, z, roll, pitch,
-    yaw, time_offset``; m, rad, s); a parameter whose sigma exceeds its typical prior error (10 cm, 1 deg, 10 ms) is
-    listed in ``weak``; ``blind`` lists those its view does not tell a typical prior error apart on
+    yaw, time_offset``; m, rad, s); a parameter whose sigma exceeds its typical prior error (10 cm, 1 deg, 10 ms), or
+    that its evidence cannot fix on this drive (``CameraResult.weak``), is listed in ``weak``; ``blind`` lists those its view does not tell a typical prior error apart on
     (``typical_error_significance`` under ``min_significance``): such a camera keeps its prior, and ``moisst-calibrate``
     holds it there. ``readout_time`` is the rolling-shutter readout the camera's projections used (rig.json's, or with
     ``estimate_readout`` the estimate when the drive determines it: ``readout_estimate``, ``readout_sigma``,
@@ -45,7 +45,7 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
                                                                                    ("trajectory", r.sigma_trajectory)) if v}
         entry = {"T_ref_sensor": np.asarray(r.estimate).tolist(), "time_offset": r.time_offset, "prior_T_ref_sensor": np.asarray(r.prior).tolist(),
                  "prior_time_offset": r.prior_offset, "sigma": [finite_or_none(s) for s in sigma],
-                 "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step],
+                 "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step or p in r.weak],
                  "loss_estimate": finite_or_none(r.cost_estimate), "loss_prior": finite_or_none(r.cost_prior), "kept_prior": r.kept_prior,
                  "note": r.note, "cost_ratio_to_reference": r.cost_ratio, "start": r.start, "wall_s": r.wall_s, "history": r.history,
                  "typical_error_significance": [finite_or_none(r.significance[j]) for j in JACOBIAN_ORDER] if r.significance else None,

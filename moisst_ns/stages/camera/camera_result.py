@@ -78,6 +78,9 @@ class CameraResult:
     sigma_trajectory: List[float] = field(default_factory=list)
     """The trajectory part of ``sigma`` (``trajectory_part``; empty where rig.json states no trajectory errors or the
     camera kept its prior)."""
+    weak: List[str] = field(default_factory=list)
+    """Parameters (trust names, ``PARAMETERS``) its evidence cannot fix on this drive whatever its sigma says: for a
+    camera placed by its own tracks, those the drive's motion does not separate (``own_tracks.weak_by_motion``)."""
 
 
 def corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:

@@ -14,14 +14,15 @@ those poses, the trajectory giving the scale:
   with a view beyond ``thresholds_px`` at the current estimate are dropped (mismatches that pass a pair's epipolar
   RANSAC chain into tracks no point explains), the thresholds shrinking as the estimate settles.
 ``scipy.optimize.least_squares`` (soft L1) on the 7 corrections of eq. 12 throughout. A planar drive turns about one
-axis, which leaves the lever arm along it undetermined: its sigma says so (the formal part, clustered by frame; the
-split halves of the drive; the short and the long tracks each fitted alone). Measured: docs/lab/2026-12-02-own-tracks.md. No nerfstudio import.
+axis, which leaves the lever arm along it undetermined: the drive's own-motion observability names it weak
+(``weak_by_motion``), beside the sigma (the formal part, clustered by frame; the split halves of the drive; the short and
+the long tracks each fitted alone). Measured: docs/lab/2026-12-02-own-tracks.md. No nerfstudio import.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional, Tuple
+from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 from jaxtyping import Float, Int
@@ -32,6 +33,7 @@ from scipy.sparse.csgraph import connected_components
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.stages.camera.camera_guards import SCALE
 from moisst_ns.stages.camera.own_motion import OwnMatches, OwnMotionFit, observation_poses
+from moisst_ns.stages.trust.drive_observability import analyse_drive
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
 
@@ -211,3 +213,25 @@ def fit_own_tracks(traj: ReferenceTrajectory, matches: OwnMatches, focal: float,
 
 
 TRACKS = OwnTracksConfig()  # the fit's settings
+
+
+def weak_by_motion(traj: ReferenceTrajectory, matches: OwnMatches, prior: Float[np.ndarray, "4 4"], prior_offset: float,
+                   log: Callable[[str], None] = print, sensor: str = "camera") -> List[str]:
+    """The parameters a camera placed by its own tracks cannot have fixed on this drive: those the drive's motion does
+    not separate in the relative model of ``drive_observability.analyse_drive`` (its own motion against the
+    trajectory's, as these tracks see it: a planar drive leaves the vertical lever arm weak), whatever the fit's sigma.
+
+    Args:
+        traj: the reference trajectory.
+        matches: the camera's own matches (their frames' ``stamps``).
+        prior: prior ``ref_T_c``; prior_offset: prior delta, seconds.
+        log: where one line per weak parameter goes; sensor: the camera's name for it.
+
+    Returns:
+        Trust names (``PARAMETERS`` order).
+    """
+    drive = analyse_drive(traj, matches.stamps + prior_offset, prior, sensor, "relative")
+    for dof in drive.dofs:
+        if dof.weak:
+            log(f"[own-tracks] {sensor}: {dof.name} weakly observable from this drive: {dof.reason}")
+    return drive.weak
