@@ -714,6 +714,41 @@ def test_a_feature_start_is_descended_from_the_second_finest_level_too_and_each_
             assert result.start.split(" (")[0] == min(costs, key=costs.get), (costs, result.start)
 
 
+def test_a_warm_start_descends_the_two_finest_levels_from_itself_alone_and_ends_where_the_full_descent_does(rig_folder, monkeypatch):
+    """The registration again on a carried trajectory starts each camera from its first registration (``warm``): one
+    descent, over the two finest levels, from exactly those corrections (no feature start, no prior start, no basin
+    test), and from the full descent's own end it stays there (within 1 mm / 0.01 deg / 0.2 ms; measured 0.8 mm / 0.004 deg
+    / 0.11 ms, the second-finest level's minimum lying that far from the finest's on this 96x72 rig)."""
+    from moisst_ns.stages.camera import camera_fit
+    from moisst_ns.stages.camera.lidar_map import lidar_map
+    from moisst_ns.stages.camera.photometric import CameraFrames, Registration
+
+    rig, truth, start = lidar_at_truth(rig_folder)
+    config = CameraRegistrationConfig(min_width=20, split_half=False)
+    world = lidar_map(rig, truth, config.map_voxel, config.min_range, lambda s: None)
+    factors = pyramid_factors(96, config.min_width)
+    camera, reference = CameraFrames.of(rig, "cam_front_right", factors), CameraFrames.of(rig, rig.reference_sensor, factors)
+    problem = Registration(ReferenceTrajectory.of(rig), world, camera, reference, start, config)
+    full = camera_fit.register_camera(problem, config, lambda s: None)
+    assert not full.kept_prior, full.note
+    descend, calls = camera_fit._descend, []
+
+    def spy(problem, config, log, theta, factors=None, so_far=None):
+        calls.append((factors, np.array(theta[:7])))
+        return descend(problem, config, log, theta, factors, so_far)
+
+    monkeypatch.setattr(camera_fit, "_descend", spy)
+    first = np.asarray(full.history[-1]["correction"], dtype=np.float64)
+    warm = camera_fit.register_camera(problem, config, lambda s: None, None, None, first)
+    assert [f for f, _ in calls] == [[2, 1]], calls
+    np.testing.assert_array_equal(calls[0][1], first)
+    assert warm.start.startswith("first registration") and not warm.kept_prior
+    pair = (Calibration(rig.reference_sensor, {"c": warm.estimate}, {"c": warm.time_offset}),
+            Calibration(rig.reference_sensor, {"c": full.estimate}, {"c": full.time_offset}))
+    apart = calibration_report_errors(*pair)["c"]
+    assert apart["translation_cm"] < 0.1 and apart["rotation_deg"] < 0.01 and apart["time_ms"] < 0.2, apart
+
+
 def test_the_trajectorys_stated_errors_enter_an_accepted_cameras_sigma_not_its_estimate(rig_folder):
     """Where rig.json states the trajectory's errors, each accepted camera is fitted again on draws of them (the map
     rebuilt on each) and its sigma is at least their RMS effect: the estimate is the same to the last bit as without the

@@ -165,14 +165,20 @@ def _started(initial: Optional[FeatureStart]) -> str:
 
 
 def register_camera(problem: Registration, config: CameraRegistrationConfig, log: Callable[[str], None] = print,
-                    floor_cost: Optional[float] = None, initial: Optional[FeatureStart] = None) -> CameraResult:
+                    floor_cost: Optional[float] = None, initial: Optional[FeatureStart] = None,
+                    warm: Optional[np.ndarray] = None) -> CameraResult:
     """Coarse-to-fine photometric registration of one camera against the map (see the module docstring), then its
     guards; ``floor_cost``: ``reference_cost`` of the rig (None: no wrong-minimum test). With a feature start
     (``initial.theta``) the coarse levels descend from it and from the prior (either can end in a wrong minimum, measured
     on 96x72 rigs), and with three levels or more the feature start also from the second-finest level alone; the finest
     level finishes one descent per basin (``_basins``), and the one with the lower final cost is guarded first, the
-    others only if the guards keep the prior for it."""
+    others only if the guards keep the prior for it. ``warm``: corrections already in the finest levels' basin (a
+    registration on a slightly turned trajectory): the two finest levels descend from them alone."""
     start = time.perf_counter()
+    if warm is not None:
+        levels = sorted(problem.camera.levels, reverse=True)[-2:]
+        return _guarded(problem, config, floor_cost, _descend(problem, config, log, warm, levels), "first registration (before the trajectory was carried)",
+                        time.perf_counter() - start)
     if initial is None or initial.theta is None:
         return _guarded(problem, config, floor_cost, _descend(problem, config, log, np.zeros(len(_active(config)))), _started(initial),
                         time.perf_counter() - start)

@@ -121,7 +121,8 @@ def camera_sensors(rig: Rig) -> List[str]:
 
 def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrationConfig, sensors: Optional[Sequence[str]] = None,
                      log: Callable[[str], None] = print, lidar_undetermined: Optional[Dict[str, Sequence[str]]] = None,
-                     lidar_sigma: Optional[Dict[str, Sequence[float]]] = None) -> CameraStageResult:
+                     lidar_sigma: Optional[Dict[str, Sequence[float]]] = None,
+                     warm: Optional[Dict[str, Float[np.ndarray, "p"]]] = None) -> CameraStageResult:
     """Register every non-reference camera against the map of the LiDARs at ``calibration``.
 
     Args:
@@ -139,6 +140,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             placed). When the placements say the trajectory is turned (``trajectory_turn``), the cameras are registered
             again on it carried to the reference camera (``trajectory_T_reference``) and the LiDARs placed again against
             them (``place_again``).
+        warm: per camera, its corrections to the prior (solver order) from a registration on the trajectory before it
+            was carried: the finest two levels descend from there alone (no feature start, no other basin).
 
     Returns:
         The result; ``calibration`` holds the registered cameras (or their priors where kept).
@@ -180,8 +183,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         if name in results:
             continue
         problem = problems[name] = Registration(traj, world, CameraFrames.of(rig, name, factors), reference, calibration, config)
-        initial = None
-        if reference is not None and config.feature_start:
+        initial, first = None, (warm or {}).get(name)
+        if reference is not None and config.feature_start and first is None:
             initial = feature_start(traj, world, problem.camera, reference, np.asarray(calibration.T_ref_sensor[reference_name], dtype=np.float64),
                                     float(calibration.time_offset[reference_name]), problem.model.prior.numpy(), problem.model.prior_offset,
                                     rig.sensors[name].intrinsics, bounds(config), START, log)
@@ -202,11 +205,11 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
                     results[name] = replace(results[name], weak=weak_by_motion(traj, own[name], results[name].prior, results[name].prior_offset, log, name))
         else:
             try:
-                results[name] = register_camera(problem, config, log, floor, initial)
+                results[name] = register_camera(problem, config, log, floor, initial, first)
                 if results[name].readout_note.startswith(UNDETERMINED):  # refitted with rig.json's readout, which it keeps
                     log(f"[camera-registration] {name}: {results[name].readout_note}; refitting with it")
                     again = Registration(traj, world, problem.camera, reference, calibration, config)
-                    results[name] = replace(register_camera(again, replace(config, estimate_readout=False), log, floor, initial),
+                    results[name] = replace(register_camera(again, replace(config, estimate_readout=False), log, floor, initial, first),
                                             **{k: getattr(results[name], k) for k in ("readout_estimate", "readout_sigma", "readout_note")})
             except NoOverlapError as err:
                 results[name] = _prior_kept(name, calibration, str(err), rig)
@@ -233,8 +236,10 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     # LiDARs placed again against them (taking what they took the first time: the motion's estimate was of the other frame)
     carried, start = replace(rig), replace(calibration, T_ref_sensor={**calibration.T_ref_sensor, **{n: out.T_ref_sensor[n] for n in lidars}})
     carried.carry_trajectory(turn)
+    first = {n: np.asarray(r.history[-1]["correction"], dtype=np.float64) for n, r in result.cameras.items()
+             if not r.kept_prior and n not in own and r.history}  # the turn is small: they start in their basin
     try:
-        again = register_cameras(carried, start, config, sensors, log, lidar_undetermined)
+        again = register_cameras(carried, start, config, sensors, log, lidar_undetermined, warm=first)
     except NoMapError as err:  # its features no longer triangulate
         log(f"[camera-registration] on the carried trajectory: {err}: the trajectory and the cameras as first registered")
         return result
