@@ -75,7 +75,7 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
     begun = time.perf_counter()
     finest = {n: min(p.camera.levels) for n, p in problems.items()}
     own = own or {}
-    thetas = {n: np.asarray(r.history[-1]["correction"], dtype=np.float64) if n not in own else  # PARAMETERS order -> the solver's
+    thetas = {n: r.correction if n not in own else  # PARAMETERS order -> the solver's
               np.asarray(parameter_difference(r.prior, r.prior_offset, r.estimate, r.time_offset))[list(JACOBIAN_ORDER)] for n, r in results.items()}
 
     def fit(drawn: Rig) -> Dict[str, Optional[Tuple[np.ndarray, float]]]:
@@ -209,7 +209,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
                 if results[name].readout_note.startswith(UNDETERMINED):  # refitted with rig.json's readout, which it keeps
                     log(f"[camera-registration] {name}: {results[name].readout_note}; refitting with it")
                     again = Registration(traj, world, problem.camera, reference, calibration, config)
-                    results[name] = replace(register_camera(again, replace(config, estimate_readout=False), log, floor, initial, first),
+                    results[name] = replace(register_camera(again, replace(config, estimate_readout=False), log, floor, initial,
+                                                            None if first is None else first[:7]),  # without the readout
                                             **{k: getattr(results[name], k) for k in ("readout_estimate", "readout_sigma", "readout_note")})
             except NoOverlapError as err:
                 results[name] = _prior_kept(name, calibration, str(err), rig)
@@ -236,8 +237,7 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
     # LiDARs placed again against them (taking what they took the first time: the motion's estimate was of the other frame)
     carried, start = replace(rig), replace(calibration, T_ref_sensor={**calibration.T_ref_sensor, **{n: out.T_ref_sensor[n] for n in lidars}})
     carried.carry_trajectory(turn)
-    first = {n: np.asarray(r.history[-1]["correction"], dtype=np.float64) for n, r in result.cameras.items()
-             if not r.kept_prior and n not in own and r.history}  # the turn is small: they start in their basin
+    first = {n: r.correction for n, r in result.cameras.items() if not r.kept_prior and n not in own and r.history}  # the turn is small: they start in their basin
     try:
         again = register_cameras(carried, start, config, sensors, log, lidar_undetermined, warm=first)
     except NoMapError as err:  # its features no longer triangulate

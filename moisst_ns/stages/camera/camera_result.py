@@ -82,6 +82,11 @@ class CameraResult:
     """Parameters (trust names, ``PARAMETERS``) its evidence cannot fix on this drive whatever its sigma says: for a
     camera placed by its own tracks, those the drive's motion does not separate (``own_tracks.weak_by_motion``)."""
 
+    @property
+    def correction(self) -> Float[np.ndarray, "p"]:
+        """The photometric fit's corrections to the prior at its end (solver order: rad, m, s[, readout s])."""
+        return np.asarray(self.history[-1]["correction"], dtype=np.float64)
+
 
 def corrected(prior: np.ndarray, prior_offset: float, theta: np.ndarray) -> Tuple[np.ndarray, float]:
     """``prior`` and its offset with the corrections ``theta`` (rotation vector rad, lever arm m, delta s: eq. 12)."""
