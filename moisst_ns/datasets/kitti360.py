@@ -13,7 +13,7 @@ from typing import Annotated, Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 import tyro
 
-from moisst_ns.datasets.kitti360_io import (CAMERAS, PERSPECTIVE, REFERENCE, SUFFIX, VELODYNE, Kitti360Error, MeiCamera, Perspective,
+from moisst_ns.datasets.kitti360_io import (CAMERAS, PERSPECTIVE, REFERENCE, SUFFIX, VELODYNE, Kitti360Error, KittiCalibration, MeiCamera,
                                              _cameras, _Layout, _perturbed, _require, _write_image, format_timestamp,
                                              read_cam_to_pose, read_cam_to_velo, read_indexed_poses, read_mei_yaml,
                                              read_perspective, read_timestamps)
@@ -54,19 +54,7 @@ class Kitti360Paths(_Layout):
         return self.root / "data_poses" / self.sequence / "cam0_to_world.txt"
 
 
-@dataclass
-class Kitti360Calibration:
-    """Everything the dataset says about the rig: extrinsics in the rectified image_00 frame and intrinsics."""
-
-    T_ref: Dict[str, np.ndarray]
-    """sensor -> T_rect0_sensor (4x4)."""
-    perspective: Dict[str, Perspective]
-    fisheye: Dict[str, MeiCamera]
-    pose_T_rect0: np.ndarray
-    """Vehicle pose frame <- rectified camera 0 (to turn ``poses.txt`` into the reference trajectory)."""
-
-
-def read_calibration(paths: Kitti360Paths, cameras: Sequence[str], lidar: bool) -> Kitti360Calibration:
+def read_calibration(paths: Kitti360Paths, cameras: Sequence[str], lidar: bool) -> KittiCalibration:
     """Read ``calibration/`` and express every sensor in the rectified ``image_00`` frame (see module doc)."""
     calib = _require(paths.calibration, "calibration folder")
     cam_to_pose = read_cam_to_pose(calib / "calib_cam_to_pose.txt", sorted(set(cameras) | {REFERENCE}))
@@ -84,7 +72,7 @@ def read_calibration(paths: Kitti360Paths, cameras: Sequence[str], lidar: bool) 
     if lidar:
         T_ref[VELODYNE] = rect0_T_cam0 @ inverse(read_cam_to_velo(calib / "calib_cam_to_velo.txt"))
     T_ref[REFERENCE] = np.eye(4)
-    return Kitti360Calibration(T_ref=T_ref, perspective=persp, fisheye=fisheye, pose_T_rect0=inverse(rect0_T_pose))
+    return KittiCalibration(T_ref=T_ref, perspective=persp, ref_T_body=rect0_T_pose, fisheye=fisheye)
 
 
 def rectify_map(camera: MeiCamera, K: np.ndarray, size: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray]:
@@ -208,11 +196,11 @@ def sensor_stamps(paths: Kitti360Paths, sensor: str, frames: Sequence[int]) -> n
     return stamps[np.asarray(frames)]
 
 
-def reference_trajectory(paths: Kitti360Paths, calib: Kitti360Calibration, frames: Sequence[int], margin: int):
+def reference_trajectory(paths: Kitti360Paths, calib: KittiCalibration, frames: Sequence[int], margin: int):
     """world_T_rect0 at image_00 frames with a pose, within ``frames`` +- ``margin``.
 
     ``cam0_to_world.txt`` is used when present (rectified camera 0 -> world, as published); otherwise
-    ``poses.txt`` composed with the calibration (``world_T_pose · pose_T_rect0``).
+    ``poses.txt`` composed with the calibration (``world_T_pose · pose_T_rect0``, ``calib.ref_T_body`` inverted).
 
     Returns:
         (frame indices (K,), poses (K, 4, 4), source file).
@@ -224,7 +212,7 @@ def reference_trajectory(paths: Kitti360Paths, calib: Kitti360Calibration, frame
         source = paths.cam0_to_world
     else:
         indices, poses = read_indexed_poses(_require(paths.poses, "poses.txt"), 12)
-        poses = poses @ calib.pose_T_rect0
+        poses = poses @ inverse(calib.ref_T_body)
         source = paths.poses
     keep = (indices >= frames[0] - margin) & (indices <= frames[-1] + margin)
     if keep.sum() < 2:

@@ -6,7 +6,7 @@ and ``moisst_ns.datasets.kitti_raw`` (KITTI raw uses the same calibration key fi
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
@@ -31,8 +31,10 @@ class Kitti360Error(RigFormatError):
     """A KITTI-360 folder is incomplete or malformed; one line naming the file, the field and the problem."""
 
 
-def _rigid(values: Sequence[float]) -> np.ndarray:
+def _rigid(values: Sequence[float], file: Path, key: str) -> np.ndarray:
+    """The 4x4 pose of 12 numbers ``[R | t]`` (row by row) read from ``file``'s ``key``, checking that R is a rotation."""
     values = np.asarray(values, dtype=np.float64).reshape(3, 4)
+    _check_rotation(values[:, :3], file, key)
     return rigid(values[:, :3], values[:, 3])
 
 
@@ -90,27 +92,18 @@ def _values(table: Dict[str, np.ndarray], key: str, count: int, file: Path) -> n
 def read_cam_to_pose(path: Path, cameras: Sequence[str]) -> Dict[str, np.ndarray]:
     """``calib_cam_to_pose.txt`` -> {camera: pose_T_cam (4x4)}."""
     table = read_key_values(path)
-    out = {}
-    for cam in cameras:
-        pose = _rigid(_values(table, cam, 12, path))
-        _check_rotation(pose[:3, :3], path, cam)
-        out[cam] = pose
-    return out
+    return {cam: _rigid(_values(table, cam, 12, path), path, cam) for cam in cameras}
 
 
 def read_cam_to_velo(path: Path) -> np.ndarray:
     """``calib_cam_to_velo.txt`` (one line of 12 numbers) -> velo_T_cam0 (4x4)."""
-    _require(path, "(file)")
-    numbers = path.read_text().split()
     try:
-        values = [float(v) for v in numbers]
+        values = [float(v) for v in _require(path, "(file)").read_text().split()]
     except ValueError:
         raise Kitti360Error(path, "cam0 -> velo", "not a number") from None
     if len(values) != 12:
         raise Kitti360Error(path, "cam0 -> velo", f"expected 12 numbers (3x4), got {len(values)}")
-    pose = _rigid(values)
-    _check_rotation(pose[:3, :3], path, "cam0 -> velo")
-    return pose
+    return _rigid(values, path, "cam0 -> velo")
 
 
 @dataclass
@@ -192,6 +185,20 @@ class MeiCamera:
         xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
         yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
         return np.stack([self.gamma1 * xd + self.u0, self.gamma2 * yd + self.v0], axis=-1), valid
+
+
+@dataclass
+class KittiCalibration:
+    """What a KITTI dataset says about the rig: extrinsics in the rectified image_00 frame and intrinsics."""
+
+    T_ref: Dict[str, np.ndarray]
+    """sensor -> T_rect0_sensor (4x4), every camera asked for (and the Velodyne)."""
+    perspective: Dict[str, Perspective]
+    ref_T_body: np.ndarray
+    """Rectified camera 0 <- the frame the dataset's trajectory poses (KITTI-360's vehicle pose frame of ``poses.txt``,
+    KITTI raw's OXTS IMU): turns ``world_T_body`` into the reference trajectory."""
+    fisheye: Dict[str, MeiCamera] = field(default_factory=dict)
+    """KITTI-360's fisheye cameras."""
 
 
 MEI_KEYS = {

@@ -8,14 +8,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Annotated, Dict, List, Literal, Optional, Sequence, Tuple
+from typing import Annotated, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 import tyro
 
 from moisst_ns.datasets.kitti360 import sensor_stamps
-from moisst_ns.datasets.kitti360_io import (CAMERAS, REFERENCE, VELODYNE, Kitti360Error, Perspective, _cameras, _check_rotation,
-                                             _Layout, _perturbed, _require, _values, _write_image, format_timestamp,
+from moisst_ns.datasets.kitti360_io import (CAMERAS, REFERENCE, VELODYNE, Kitti360Error, KittiCalibration, _cameras, _Layout,
+                                             _perturbed, _require, _rigid, _values, _write_image, format_timestamp,
                                              read_key_values, read_perspective, read_timestamps)
 from moisst_ns.datasets.rig_writer import inverse, prepare_out, rigid, scaled_intrinsics, write_rig, write_trajectory
 
@@ -69,34 +69,18 @@ def read_rt(path: Path) -> np.ndarray:
     """``calib_velo_to_cam.txt`` / ``calib_imu_to_velo.txt`` (``R:`` 9 numbers, ``T:`` 3) -> 4x4 (``b_T_a`` of
     ``calib_a_to_b``: maps points of sensor a into sensor b's frame)."""
     table = read_key_values(path)
-    pose = rigid(_values(table, "R", 9, path).reshape(3, 3))
-    _check_rotation(pose[:3, :3], path, "R")
-    pose[:3, 3] = _values(table, "T", 3, path)
-    return pose
+    return _rigid(np.c_[_values(table, "R", 9, path).reshape(3, 3), _values(table, "T", 3, path)], path, "R")
 
 
-@dataclass
-class KittiRawCalibration:
-    """The factory calibration in the rectified image_00 frame."""
-
-    T_ref: Dict[str, np.ndarray]
-    """sensor -> T_rect0_sensor (4x4), every camera asked for and the Velodyne."""
-    perspective: Dict[str, Perspective]
-    ref_T_imu: np.ndarray
-    """Rectified camera 0 <- OXTS IMU (turns ``world_T_imu`` into the reference trajectory)."""
-
-
-def read_calibration(paths: KittiRawPaths, cameras: Sequence[str]) -> KittiRawCalibration:
-    """Read the three ``calib_*.txt`` files and express every sensor in the rectified ``image_00`` frame."""
+def read_calibration(paths: KittiRawPaths, cameras: Sequence[str]) -> KittiCalibration:
+    """Read the three ``calib_*.txt`` files and express every sensor in the rectified ``image_00`` frame (the
+    trajectory's body: the OXTS IMU)."""
     persp = read_perspective(paths.calib_dir / "calib_cam_to_cam.txt", sorted(set(cameras) | {REFERENCE}), CAMERAS)
-    T_ref: Dict[str, np.ndarray] = {}
-    for cam in cameras:
-        T_ref[cam] = np.eye(4)
-        T_ref[cam][:3, 3] = 0.0 - persp[cam].offset
+    T_ref = {cam: rigid(translation=0.0 - persp[cam].offset) for cam in cameras}
     T_ref[REFERENCE] = np.eye(4)
     T_ref[VELODYNE] = rigid(persp[REFERENCE].R_rect) @ read_rt(paths.calib_dir / "calib_velo_to_cam.txt")
     ref_T_imu = T_ref[VELODYNE] @ read_rt(paths.calib_dir / "calib_imu_to_velo.txt")
-    return KittiRawCalibration(T_ref=T_ref, perspective=persp, ref_T_imu=ref_T_imu)
+    return KittiCalibration(T_ref=T_ref, perspective=persp, ref_T_body=ref_T_imu)
 
 
 def read_oxts(paths: KittiRawPaths) -> Tuple[np.ndarray, np.ndarray]:
@@ -266,7 +250,7 @@ checked before anything is written (an unreadable or wrong-sized image or scan s
                       "must not be inside the KITTI raw folder (nothing is written into the dataset)")
 
     origin = int(ref_all[0])
-    write_trajectory(out / "reference_poses.txt", (oxts_stamps - origin) * 1e-9, oxts_poses(packets) @ inverse(calib.ref_T_imu),
+    write_trajectory(out / "reference_poses.txt", (oxts_stamps - origin) * 1e-9, oxts_poses(packets) @ inverse(calib.ref_T_body),
                      header=f"world_T_image_00 (rectified) from the OXTS of {config.drive}: timestamp tx ty tz qx qy qz qw")
     factor = config.downscale
     intr = {cam: scaled_intrinsics(calib.perspective[cam].K, calib.perspective[cam].size, factor) for cam in cameras}
