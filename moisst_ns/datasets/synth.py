@@ -149,12 +149,7 @@ def build_scene(config: SynthConfig, path: Optional[VehiclePath] = None) -> Scen
     rng = np.random.default_rng(_streams(config.seed)["scene"])
     s_start = path.s_at(0.0) - 20.0
     s_end = path.s_at((config.frames - 1) * PERIOD) + 38.0
-    if config.layout == "street":
-        objs = _street_objects(path, s_start, s_end, rng)
-    elif config.layout == "plaza":
-        objs = _plaza_objects(path, s_start, s_end, rng)
-    else:
-        raise ValueError(f"unknown layout {config.layout!r}")
+    objs = {"street": _street_objects, "plaza": _plaza_objects}[config.layout](path, s_start, s_end, rng)
     verts = np.concatenate([o.vertices for o in objs])
     center = 0.5 * (verts[:, :2].min(axis=0) + verts[:, :2].max(axis=0))
     extent = float(np.max(verts[:, :2].max(axis=0) - verts[:, :2].min(axis=0))) + 150.0

@@ -106,8 +106,6 @@ def render_frame(scene: Scene, intr: Dict[str, object], world_T_at: PoseFn, stam
         rgb, hit = colour_rays(scene, origins, dirs, 1.0 / (float(intr["fl_x"]) * ss), movers, times + to_path_time)
         rgb_sum = rgb_sum + rgb.reshape(h, ss, w, ss, 3).mean(axis=(1, 3))
         hit_sum = hit_sum + hit.reshape(h, ss, w, ss).mean(axis=(1, 3))
-    if len(offsets) == 1:
-        return rgb_sum, hit_sum
     return rgb_sum / len(offsets), hit_sum / len(offsets)
 
 

@@ -22,15 +22,9 @@ GRAY_TEXTURES = ("brick", "camera", "cell", "coins", "gravel", "grass", "clock",
 def _load_skimage(name: str) -> np.ndarray:
     import skimage.data
 
-    image = getattr(skimage.data, name)()
-    if isinstance(image, tuple):
-        image = image[0]
-    image = np.asarray(image)
-    if image.dtype != np.uint8:
-        image = (np.clip(image, 0, 1) * 255).astype(np.uint8) if image.dtype.kind == "f" else image.astype(np.uint8)
-    if image.ndim == 2:
-        image = np.repeat(image[..., None], 3, axis=-1)
-    return image[..., :3]
+    image = getattr(skimage.data, name)()  # uint8, grey or RGB
+    image = image[0] if isinstance(image, tuple) else image  # stereo_motorcycle: (left, right, disparity)
+    return np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image
 
 
 @dataclass
