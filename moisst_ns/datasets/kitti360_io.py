@@ -60,15 +60,19 @@ def _require(path: Path, what: str) -> Path:
     return path
 
 
+def _lines(path: Path) -> List[Tuple[int, str]]:
+    """(line number, text without surrounding blanks) of the non-blank lines of the file ``path``."""
+    return [(n, line.strip()) for n, line in enumerate(_require(path, "(file)").read_text().splitlines(), start=1) if line.strip()]
+
+
 def read_key_values(path: Path) -> Dict[str, np.ndarray]:
     """Read a ``key: v1 v2 ...`` text file (``calib_cam_to_pose.txt``, ``perspective.txt``).
 
     Returns:
         key -> float64 values; lines whose values are not all numbers (``calib_time: 09-Jan-2012 ...``) are skipped.
     """
-    _require(path, "(file)")
     out: Dict[str, np.ndarray] = {}
-    for line in path.read_text().splitlines():
+    for line in _require(path, "(file)").read_text().splitlines():
         if ":" not in line:
             continue
         key, _, rest = line.partition(":")
@@ -212,10 +216,9 @@ def read_mei_yaml(path: Path) -> MeiCamera:
     """Read an ``image_0X.yaml`` MEI fisheye calibration (OpenCV FileStorage YAML starting with ``%YAML:1.0``)."""
     import yaml
 
-    _require(path, "(file)")
-    text = path.read_text()
+    text = _require(path, "(file)").read_text()
     if text.startswith("%YAML"):
-        text = text.split("\n", 1)[1] if "\n" in text else ""
+        text = text.partition("\n")[2]
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as err:
@@ -250,12 +253,9 @@ def read_indexed_poses(path: Path, columns: int) -> Tuple[np.ndarray, np.ndarray
     Returns:
         (frame indices (K,), poses (K, 4, 4)), sorted by index.
     """
-    _require(path, "(file)")
     indices, poses = [], []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    for lineno, line in _lines(path):
         parts = line.split()
-        if not parts:
-            continue
         if len(parts) != columns + 1:
             raise Kitti360Error(path, f"line {lineno}", f"expected a frame index and {columns} numbers, got {len(parts)} values")
         try:
@@ -285,12 +285,8 @@ def read_timestamps(path: Path) -> np.ndarray:
     Returns:
         (N,) int64 nanoseconds since the Unix epoch (exact).
     """
-    _require(path, "(file)")
     stamps = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        text = line.strip()
-        if not text:
-            continue
+    for lineno, text in _lines(path):
         try:
             stamps.append(np.datetime64(text.replace(" ", "T"), "ns").astype(np.int64))
         except ValueError:
@@ -306,8 +302,7 @@ def read_timestamps(path: Path) -> np.ndarray:
 
 def format_timestamp(ns: int) -> str:
     """Inverse of one ``read_timestamps`` line."""
-    text = str(np.datetime64(int(ns), "ns"))
-    return text.replace("T", " ")
+    return str(np.datetime64(int(ns), "ns")).replace("T", " ")
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -29,19 +29,10 @@ def inverse(pose: Float[np.ndarray, "4 4"]) -> Float[np.ndarray, "4 4"]:
     return rigid(pose[:3, :3].T, -pose[:3, :3].T @ pose[:3, 3])
 
 
-def clear_generated_dataset(out: Path) -> None:
-    """Remove what a dataset generator or converter writes into ``out`` (other files there are left alone)."""
-    for name in ("rig.json", "reference_poses.txt", "ground_truth.json"):
-        (Path(out) / name).unlink(missing_ok=True)
-    for name in ("images", "lidar"):
-        if (Path(out) / name).is_dir():
-            shutil.rmtree(Path(out) / name)
-
-
 def prepare_out(out: Path, sources: Sequence[Path], overwrite: bool, error: type, inside: str, clear: bool = True) -> Path:
     """Check that ``out`` can take a dataset: not inside any of ``sources`` (else ``error`` with the message ``inside``,
-    ``{source}`` filled in), a folder, empty unless ``overwrite``; then (``clear``) empty it of a generated dataset and
-    create it."""
+    ``{source}`` filled in), a folder, empty unless ``overwrite``; then (``clear``) empty it of a generated dataset (what
+    a dataset generator or converter writes; other files there are left alone) and create it."""
     for source in map(Path, sources):
         if out.resolve() == source.resolve() or source.resolve() in out.resolve().parents:
             raise error(out, "--out", inside.format(source=source))
@@ -51,7 +42,11 @@ def prepare_out(out: Path, sources: Sequence[Path], overwrite: bool, error: type
         if not overwrite:
             raise error(out, "--out", "exists and is not empty; pass --overwrite to replace its dataset")
         if clear:
-            clear_generated_dataset(out)
+            for name in ("rig.json", "reference_poses.txt", "ground_truth.json"):
+                (out / name).unlink(missing_ok=True)
+            for name in ("images", "lidar"):
+                if (out / name).is_dir():
+                    shutil.rmtree(out / name)
     if clear:
         out.mkdir(parents=True, exist_ok=True)
     return out

@@ -69,12 +69,8 @@ def rigid(translation: Sequence[float], quat_xyzw: Sequence[float]) -> Float[np.
     return pose
 
 
-def _transform(tf) -> Float[np.ndarray, "4 4"]:
-    return rigid((tf.translation.x, tf.translation.y, tf.translation.z), (tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w))
-
-
-def _pose(pose) -> Float[np.ndarray, "4 4"]:
-    p, q = pose.position, pose.orientation
+def _rigid_of(p, q) -> Float[np.ndarray, "4 4"]:
+    """``rigid`` of a message's point or vector ``p`` (x, y, z) and quaternion ``q`` (x, y, z, w)."""
     return rigid((p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
 
 
@@ -86,10 +82,11 @@ def poses_of(msg, msgtype: str) -> list:
         every transform of a ``TFMessage``, else the one pose.
     """
     if msgtype == TF:
-        return [(frame_name(t.header.frame_id), frame_name(t.child_frame_id), t.header, _transform(t.transform)) for t in msg.transforms]
+        return [(frame_name(t.header.frame_id), frame_name(t.child_frame_id), t.header, _rigid_of(t.transform.translation, t.transform.rotation))
+                for t in msg.transforms]
     child = frame_name(msg.child_frame_id) if msgtype == "nav_msgs/msg/Odometry" else ""
     pose = msg.pose if msgtype == "geometry_msgs/msg/PoseStamped" else msg.pose.pose
-    return [(frame_name(msg.header.frame_id), child, msg.header, _pose(pose))]
+    return [(frame_name(msg.header.frame_id), child, msg.header, _rigid_of(pose.position, pose.orientation))]
 
 
 class StaticTf:

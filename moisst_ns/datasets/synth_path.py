@@ -78,13 +78,10 @@ class VehiclePath:
         bounce = 0.02 * np.sin(2 * np.pi * t / 1.3 + p3)
         if self.drive == "straight":
             pitch, roll, bounce = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
-        poses = np.zeros(t.shape + (4, 4))
-        for i in range(t.shape[0]):
+        poses = np.tile(np.eye(4), (len(t), 1, 1))
+        for i in range(len(t)):
             poses[i, :3, :3] = rot_z(psi[i]) @ rot_y(pitch[i]) @ rot_x(roll[i])
-        poses[:, 0, 3] = np.interp(t, self.grid, self.xy[:, 0])
-        poses[:, 1, 3] = np.interp(t, self.grid, self.xy[:, 1])
-        poses[:, 2, 3] = bounce
-        poses[:, 3, 3] = 1.0
+        poses[:, :3, 3] = np.stack([np.interp(t, self.grid, self.xy[:, 0]), np.interp(t, self.grid, self.xy[:, 1]), bounce], axis=-1)
         return poses
 
     def at_arclength(self, s: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
