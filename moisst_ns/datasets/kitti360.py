@@ -160,19 +160,16 @@ class Kitti360Config(Kitti360Frames, _Kitti360Source):
     """Replace the converter's outputs in a non-empty --out."""
 
 
-def _frame_range(config: Kitti360Config) -> List[int]:
+def _check_config(config: Kitti360Config) -> Tuple[List[str], List[int]]:
+    """The cameras and the frame indices of ``config``, after checking it."""
+    cameras = _cameras(config, CAMERAS, "KITTI-360")
+    if not 10.0 <= config.fisheye_fov < 170.0:
+        raise Kitti360Error("(command line)", "--fisheye-fov", f"must be in [10, 170) degrees, got {config.fisheye_fov}")
     last = config.first_frame + 99 if config.last_frame is None else config.last_frame
     if config.first_frame < 0 or last < config.first_frame or config.stride < 1:
         raise Kitti360Error("(command line)", "--first-frame/--last-frame/--stride",
                             f"need 0 <= first <= last and stride >= 1, got {config.first_frame}, {last}, {config.stride}")
-    return list(range(config.first_frame, last + 1, config.stride))
-
-
-def _check_config(config: Kitti360Config) -> Tuple[List[str], List[int]]:
-    cameras = _cameras(config, CAMERAS, "KITTI-360")
-    if not 10.0 <= config.fisheye_fov < 170.0:
-        raise Kitti360Error("(command line)", "--fisheye-fov", f"must be in [10, 170) degrees, got {config.fisheye_fov}")
-    return cameras, _frame_range(config)
+    return cameras, list(range(config.first_frame, last + 1, config.stride))
 
 
 def sensor_stamps(paths: Kitti360Paths, sensor: str, frames: Sequence[int]) -> np.ndarray:

@@ -130,9 +130,7 @@ def read_perspective(path: Path, cameras: Sequence[str], perspective: Sequence[s
     cameras among ``cameras`` that are in ``perspective``."""
     table = read_key_values(path)
     out = {}
-    for cam in cameras:
-        if cam not in perspective:
-            continue
+    for cam in [c for c in cameras if c in perspective]:
         n = cam[-2:]
         P = _values(table, f"P_rect_{n}", 12, path).reshape(3, 4)
         R = _values(table, f"R_rect_{n}", 9, path).reshape(3, 3)

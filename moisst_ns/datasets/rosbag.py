@@ -161,8 +161,7 @@ def _topic(reader, bags, topic: str, wanted: Tuple[str, ...], what: str) -> list
 
 
 def _camera_info(reader, bags, sensor: _Sensor, factor: int) -> None:
-    base = sensor.topic[: -len("/compressed")] if sensor.topic.endswith("/compressed") else sensor.topic
-    candidate = base.rsplit("/", 1)[0] + "/camera_info"
+    candidate = sensor.topic.removesuffix("/compressed").rsplit("/", 1)[0] + "/camera_info"
     conns = _topic(reader, bags, candidate, (CAMERA_INFO,), f"the camera_info of {sensor.topic}")
     for conn, _, raw in reader.messages(connections=conns):
         try:

@@ -236,9 +236,7 @@ def cloud_arrays(msg, frame_ns: int) -> Tuple[Float32[np.ndarray, "n 3"], Option
         raise MessageError(f"PointCloud2 data holds {data.size} bytes, {w}x{h} points of {msg.point_step} bytes need more")
     flat = data[: h * row] if row == w * msg.point_step else data[: h * row].reshape(h, row)[:, : w * msg.point_step].reshape(-1)
     rec = np.frombuffer(np.ascontiguousarray(flat), dtype=dtype, count=w * h)
-    points = np.empty((w * h, 3), dtype=np.float32)
-    for i, n in enumerate("xyz"):
-        points[:, i] = rec[n]
+    points = np.stack([rec[n] for n in "xyz"], axis=-1).astype(np.float32)
     if time_name is None:
         return points, None, "no per-point time field (t, time, timestamp): none written"
     values = rec[time_name]
