@@ -101,8 +101,7 @@ def camera_depth_errors(
 
 def synthetic_scene(rig_root: Path):
     """The ray-castable scene of a ``moisst-synth`` rig (its rig.json ``metadata`` names it), else None."""
-    from moisst_ns.datasets.synth import build_scene
-    from moisst_ns.datasets.synth_truth import config_of_rig
+    from moisst_ns.datasets.synth import build_scene, config_of_rig
 
     synth = config_of_rig(json.loads((rig_root / "rig.json").read_text()).get("metadata", {}))
     return build_scene(synth) if synth is not None else None
@@ -123,7 +122,7 @@ def scene_depth_check(pipeline, rig_root: Path, num_rays: int) -> Dict[str, floa
     """
     import torch
 
-    from moisst_ns.datasets.synth_truth import in_lidar_field
+    from moisst_ns.datasets.synth import in_lidar_field
 
     scene = synthetic_scene(Path(rig_root))
     model, datamanager = pipeline.model, pipeline.datamanager

@@ -19,8 +19,7 @@ from moisst_ns.datasets.kitti360 import MeiCamera, format_timestamp
 from moisst_ns.datasets.rig_writer import inverse, rigid
 from moisst_ns.rig.format import load_lidar_scan, load_rig, load_tum
 from moisst_ns.datasets.synth import SynthConfig, build_scene, make_path, make_rig
-from moisst_ns.datasets.synth_path import rot_x, rot_y, rot_z
-from moisst_ns.datasets.synth_rig import _orthonormalise
+from moisst_ns.datasets.synth_rig import _orthonormalise, rot_x, rot_y, rot_z
 
 SEQUENCE = "2013_05_28_drive_0000_sync"
 BASE_NS = int(np.datetime64("2013-05-28T08:00:00", "ns").astype(np.int64))

@@ -465,8 +465,7 @@ def test_stage_floor_and_map_depth(rig_folder):
     8 cm / 0.2 deg / 5 ms of it on this 96x72 rig (measured 0.10 / 0.0013 / 0.009 and 3.7 / 0.072 / 1.9; 0.2 cm at
     320x240: README); the exact synthetic LiDAR map lies on the true surfaces where the cameras look (median 0.7 um),
     and a map built from a LiDAR 20 cm off is seen 15 cm off."""
-    from moisst_ns.datasets.synth import build_scene
-    from moisst_ns.datasets.synth_truth import config_of_rig
+    from moisst_ns.datasets.synth import build_scene, config_of_rig
     from moisst_ns.stages.stage_floor import map_depth_errors, rig_at, stage_floor
 
     rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")

@@ -130,7 +130,7 @@ def test_fisheye_is_rectified_onto_the_right_pinhole_view(sample, converted):
 
     from moisst_ns.rig.geometry import ReferenceTrajectory
     from moisst_ns.datasets.synth import SynthConfig, build_scene, make_path
-    from moisst_ns.datasets.synth_path import rot_y
+    from moisst_ns.datasets.synth_rig import rot_y
 
     rig = load_rig(converted)
     config = SynthConfig(out=sample["native"], width=64, height=48, frames=8, seed=3)

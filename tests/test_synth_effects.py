@@ -22,6 +22,7 @@ from moisst_ns.datasets.synth import (
     SynthError,
     _streams,
     build_scene,
+    config_of_rig,
     intrinsics,
     make_path,
     make_rig,
@@ -42,7 +43,6 @@ from moisst_ns.datasets.synth_effects import (
     vignetting_factor,
 )
 from moisst_ns.datasets.synth_render import render_frame
-from moisst_ns.datasets.synth_truth import config_of_rig
 from moisst_ns.rig.format import RigFormatError, load_calibration, load_lidar_scan, load_rig, rig_to_json
 from moisst_ns.rig.geometry import ReferenceTrajectory, sensor_pose
 from moisst_ns.rig.trajectory_noise import TrajectoryAccuracy, perturb_trajectory

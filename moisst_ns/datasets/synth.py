@@ -6,8 +6,8 @@ three pinhole cameras and a spinning LiDAR at 10 Hz, triggered at different phas
 ``reference_poses.txt`` first and read back, and a frame of sensor ``i`` stamped ``t`` (its own clock) is rendered
 at ``T_r(t + delta_i) @ ref_T_i`` (paper eq. 1-2); a LiDAR point fired ``tau`` after the stamp at
 ``T_r(t + delta_L + tau) @ ref_T_L``. Everything is seeded (same configuration, byte-identical files). The scene is
-``synth_scene``, the rig ``synth_rig``, the frames ``synth_render``, the real-world effects (off by default)
-``synth_effects``. Axes: world z up; vehicle x forward, y left, z up; cameras OpenCV; LiDAR x forward, y left, z up.
+``synth_scene``, the vehicle and the rig ``synth_rig``, the frames ``synth_render``, the real-world effects (off by
+default) ``synth_effects``; ``config_of_rig`` reads a generated rig's configuration back. Axes: world z up; vehicle x forward, y left, z up; cameras OpenCV; LiDAR x forward, y left, z up.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import tyro
 
 from moisst_ns.datasets.rig_writer import prepare_out, unit_quats, write_rig
 from moisst_ns.datasets.synth_effects import Effects, check_effects, make_movers, photometric_params, resolve_effects
-from moisst_ns.datasets.synth_render import PERIOD, write_camera_frames, write_lidar_frames
+from moisst_ns.datasets.synth_render import LIDAR_MAX_RANGE, LIDAR_MIN_RANGE, PERIOD, write_camera_frames, write_lidar_frames
 from moisst_ns.datasets.synth_rig import MOUNTS, REFERENCE, SensorTruth, _streams, knock_mount, make_priors, make_truth, vehicle_T_sensor
 from moisst_ns.datasets.synth_scene import Scene, VehiclePath, _ground, _plaza_objects, _street_objects
 from moisst_ns.rig.trajectory_noise import TrajectoryAccuracy, perturb_trajectory
@@ -268,3 +268,36 @@ def make_rig(config: SynthConfig) -> Path:
         REFERENCE, {n: s.T_ref_sensor for n, s in truth.items()}, {n: s.time_offset for n, s in truth.items()}
     ).write(out / "ground_truth.json")
     return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# What a generated rig's truth is, for measuring a scene against it
+
+
+def config_of_rig(metadata: dict) -> Optional[SynthConfig]:
+    """The ``SynthConfig`` a moisst-synth rig was generated with (rig.json's ``metadata``), or None for other rigs.
+
+    Args:
+        metadata: rig.json's ``"metadata"`` object (``{}`` when absent).
+
+    Returns:
+        The configuration (``out`` set to ``.``), from which ``build_scene`` rebuilds the exact scene geometry.
+    """
+    if metadata.get("generator") != "moisst-synth":
+        return None
+    names = {f for f in SynthConfig.__dataclass_fields__ if f not in ("out", "overwrite")}
+    return SynthConfig(out=Path("."), **{k: v for k, v in metadata.items() if k in names})
+
+
+def in_lidar_field(points: np.ndarray) -> np.ndarray:
+    """Which points (LiDAR frame, metres) the synthetic LiDAR can measure: range and beam elevation limits.
+
+    Args:
+        points: (N, 3) points in the LiDAR frame, metres.
+
+    Returns:
+        (N,) boolean mask.
+    """
+    ranges = np.linalg.norm(points, axis=-1)
+    elevation = np.rad2deg(np.arcsin(np.clip(points[:, 2] / np.maximum(ranges, 1e-9), -1.0, 1.0)))
+    return (ranges >= LIDAR_MIN_RANGE) & (ranges <= LIDAR_MAX_RANGE) & (elevation >= -25.0) & (elevation <= 10.0)

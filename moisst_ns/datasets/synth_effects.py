@@ -15,7 +15,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from jaxtyping import Bool, Float, Int, UInt8
 
-from moisst_ns.datasets.synth_path import VehiclePath
+from moisst_ns.datasets.synth_rig import VehiclePath
 
 BLUR_SAMPLES = 3
 """Renders averaged over the exposure time of ``--motion-blur``."""

@@ -8,7 +8,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
-from moisst_ns.datasets.synth_path import VehiclePath, rot_z
+from moisst_ns.datasets.synth_rig import VehiclePath, rot_z
 
 
 TEXTURE_SIZE = 512
