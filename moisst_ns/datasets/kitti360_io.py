@@ -101,8 +101,9 @@ def read_cam_to_pose(path: Path, cameras: Sequence[str]) -> Dict[str, np.ndarray
 
 def read_cam_to_velo(path: Path) -> np.ndarray:
     """``calib_cam_to_velo.txt`` (one line of 12 numbers) -> velo_T_cam0 (4x4)."""
+    numbers = _require(path, "(file)").read_text().split()
     try:
-        values = [float(v) for v in _require(path, "(file)").read_text().split()]
+        values = [float(v) for v in numbers]
     except ValueError:
         raise Kitti360Error(path, "cam0 -> velo", "not a number") from None
     if len(values) != 12:
