@@ -62,7 +62,8 @@ def _require(path: Path, what: str) -> Path:
 
 def _lines(path: Path) -> List[Tuple[int, str]]:
     """(line number, text without surrounding blanks) of the non-blank lines of the file ``path``."""
-    return [(n, line.strip()) for n, line in enumerate(_require(path, "(file)").read_text().splitlines(), start=1) if line.strip()]
+    lines = enumerate(_require(path, "(file)").read_text().splitlines(), start=1)
+    return [(n, line.strip()) for n, line in lines if line.strip()]
 
 
 def read_key_values(path: Path) -> Dict[str, np.ndarray]:

@@ -82,8 +82,8 @@ def poses_of(msg, msgtype: str) -> list:
         every transform of a ``TFMessage``, else the one pose.
     """
     if msgtype == TF:
-        return [(frame_name(t.header.frame_id), frame_name(t.child_frame_id), t.header, _rigid_of(t.transform.translation, t.transform.rotation))
-                for t in msg.transforms]
+        return [(frame_name(t.header.frame_id), frame_name(t.child_frame_id), t.header,
+                 _rigid_of(t.transform.translation, t.transform.rotation)) for t in msg.transforms]
     child = frame_name(msg.child_frame_id) if msgtype == "nav_msgs/msg/Odometry" else ""
     pose = msg.pose if msgtype == "geometry_msgs/msg/PoseStamped" else msg.pose.pose
     return [(frame_name(msg.header.frame_id), child, msg.header, _rigid_of(pose.position, pose.orientation))]

@@ -7,7 +7,8 @@ three pinhole cameras and a spinning LiDAR at 10 Hz, triggered at different phas
 at ``T_r(t + delta_i) @ ref_T_i`` (paper eq. 1-2); a LiDAR point fired ``tau`` after the stamp at
 ``T_r(t + delta_L + tau) @ ref_T_L``. Everything is seeded (same configuration, byte-identical files). The scene is
 ``synth_scene``, the vehicle and the rig ``synth_rig``, the frames ``synth_render``, the real-world effects (off by
-default) ``synth_effects``; ``config_of_rig`` reads a generated rig's configuration back. Axes: world z up; vehicle x forward, y left, z up; cameras OpenCV; LiDAR x forward, y left, z up.
+default) ``synth_effects``; ``config_of_rig`` reads a generated rig's configuration back. Axes: world z up; vehicle
+x forward, y left, z up; cameras OpenCV; LiDAR x forward, y left, z up.
 """
 
 from __future__ import annotations

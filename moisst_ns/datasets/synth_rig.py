@@ -91,7 +91,7 @@ class VehiclePath:
         poses = np.tile(np.eye(4), (len(t), 1, 1))
         for i in range(len(t)):
             poses[i, :3, :3] = rot_z(psi[i]) @ rot_y(pitch[i]) @ rot_x(roll[i])
-        poses[:, :3, 3] = np.stack([np.interp(t, self.grid, self.xy[:, 0]), np.interp(t, self.grid, self.xy[:, 1]), bounce], axis=-1)
+        poses[:, :3, 3] = np.stack([np.interp(t, self.grid, self.xy[:, 0]), np.interp(t, self.grid, self.xy[:, 1]), bounce], -1)
         return poses
 
     def at_arclength(self, s: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
