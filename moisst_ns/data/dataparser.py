@@ -63,16 +63,12 @@ class MoisstRigDataParser(DataParser):
 
     config: MoisstRigDataParserConfig
 
-    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        return self.rig_outputs(self.rig_folder(), split)
-
     def rig_folder(self) -> Path:
         """The ``moisst-rig/1`` folder read (``MoisstPipeline`` runs the calibration stages on it)."""
         return Path(self.config.data)
 
-    def rig_outputs(self, root: Path, split: str) -> DataparserOutputs:
-        """Dataparser outputs of the ``moisst-rig/1`` dataset in ``root``."""
-        rig = load_rig(root)
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        rig = load_rig(self.rig_folder())
         dataset_priors, prior = None, None
         if self.config.prior_calibration is not None:
             dataset_priors, prior = Calibration.from_rig(rig), load_calibration(self.config.prior_calibration)
@@ -104,9 +100,7 @@ class MoisstRigDataParser(DataParser):
             c2w = world.camera_to_model(RigCalibration(data).prior_sensor_poses(sensor_idx, stamps)).numpy()
 
         intr = [rig.sensors[f.sensor].intrinsics for f in frames]
-        distortion = torch.zeros(len(frames), 6)
-        for i, k in enumerate(intr):
-            distortion[i] = torch.tensor([k["k1"], k["k2"], k.get("k3", 0.0), k.get("k4", 0.0), k["p1"], k["p2"]])
+        distortion = torch.tensor([[k["k1"], k["k2"], k.get("k3", 0.0), k.get("k4", 0.0), k["p1"], k["p2"]] for k in intr]).float()
         camera_types = [CAMERA_MODEL_TO_TYPE[k["camera_model"]] for k in intr]
         cameras = Cameras(
             camera_to_worlds=torch.from_numpy(c2w[:, :3, :4]).float(),
