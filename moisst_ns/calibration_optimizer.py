@@ -143,14 +143,10 @@ class CalibrationOptimizer(CameraOptimizer):
         """Re-pose camera rays generated at the prior poses (their frames' stamps) onto the calibrated poses, at
         ``row_time`` seconds after the stamps where given (a rolling shutter's rows)."""
         idx = camera_indices.reshape(-1).long()
-        if row_time is not None and bool((row_time != 0).any()):
-            key = torch.stack([idx.to(row_time.dtype), row_time.reshape(-1)], dim=-1)
-            unique_key, inverse = torch.unique(key, dim=0, return_inverse=True)
-            unique = unique_key[:, 0].long()
-            calibrated = self.frame_c2w(unique, row_time=unique_key[:, 1])
-        else:
-            unique, inverse = torch.unique(idx, return_inverse=True)
-            calibrated = self.frame_c2w(unique)
+        rows = torch.zeros(len(idx), dtype=torch.float64, device=idx.device) if row_time is None else row_time.reshape(-1)
+        unique_key, inverse = torch.unique(torch.stack([idx.to(rows.dtype), rows], dim=-1), dim=0, return_inverse=True)  # (frame, row time)
+        unique = unique_key[:, 0].long()
+        calibrated = self.frame_c2w(unique, row_time=unique_key[:, 1])
         prior = self.prior_c2w[unique.to(self.prior_c2w.device)]
         rot = (calibrated[:, :3, :3] @ prior[:, :3, :3].transpose(-1, -2)).to(directions)[inverse]
         new_origins = origins - prior[inverse, :3, 3].to(origins) + calibrated[inverse, :3, 3].to(origins)

@@ -31,6 +31,7 @@ from moisst_ns.data.layout import RayLayout
 from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss, map_range_loss
 from moisst_ns.schedules import rescale_schedules
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
+from moisst_ns.compiled_grid import compile_hash_encodings
 from moisst_ns.contraction import use_linf_contraction
 
 allow_numpy_in_checkpoints()  # nerfstudio 1.1.5 checkpoints under torch >= 2.6 (moisst_ns.compat)
@@ -206,8 +207,6 @@ class MoisstModel(NerfactoModel):
         mode = self.config.compile_hash_grid
         if mode == "off" or (mode == "auto" and (steps < COMPILE_MIN_STEPS or self.device.type != "cpu")):
             return
-        from moisst_ns.compiled_grid import compile_hash_encodings
-
         started = time.perf_counter()
         why_not = compile_hash_encodings([e for e in self._hash_encodings if e.tcnn_encoding is None], self.device)
         if why_not is None:
@@ -329,9 +328,8 @@ class MoisstModel(NerfactoModel):
                     batch["map_range"] = batch["map_range"][keep.to(batch["map_range"].device)]
         loss_dict = super().get_loss_dict(camera, batch, metrics_dict)
         layout: Optional[RayLayout] = batch.get("ray_layout")
-        patch, num_patch = (layout.patch_size, layout.num_patch) if layout is not None else (1, 0)
-        if self.training and layout is not None and layout.has_patches and num_patch <= camera["rgb"].shape[0]:
-            shape = (-1, patch, patch)
+        if self.training and layout is not None and layout.has_patches and layout.num_patch <= camera["rgb"].shape[0]:
+            num_patch, shape = layout.num_patch, (-1, layout.patch_size, layout.patch_size)
             if self.config.dssim_loss_mult > 0:
                 image = self.renderer_rgb.blend_background(batch["image"][:num_patch].to(self.device))
                 loss_dict["dssim_loss"] = self.config.dssim_loss_mult * dssim_loss(

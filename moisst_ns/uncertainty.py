@@ -41,9 +41,6 @@ class SensorUncertainty:
     """Mean squared colour residual at the estimate."""
     loss_prior: float
     """The same with this sensor's correction at zero (the prior the NeRF started from)."""
-    rays: int
-    frames: int
-    wall_s: float
 
 
 def _param_views(rig, index: int):
@@ -117,7 +114,6 @@ def sensor_uncertainty(pipeline, sensor: int, seed: int) -> Optional[SensorUncer
     Returns:
         ``SensorUncertainty`` or None.
     """
-    start = time.time()
     model, datamanager = pipeline.model, pipeline.datamanager
     rig = model.camera_optimizer.rig
     frames = torch.nonzero(model.camera_optimizer.frame_sensor.cpu() == sensor)[:, 0].tolist()
@@ -134,9 +130,8 @@ def sensor_uncertainty(pipeline, sensor: int, seed: int) -> Optional[SensorUncer
     residuals = (base - target).reshape(-1).numpy().astype(np.float64)
     clusters = np.repeat(indices[:, 0].numpy(), 3)
     fit = least_squares_sigma(np.stack(columns, axis=1).astype(np.float64), residuals, clusters)
-    return SensorUncertainty(
-        sigma=[float(s) for s in fit.sigma], loss_estimate=float(np.mean(residuals**2)),
-        loss_prior=float(((at_prior - target) ** 2).mean()), rays=len(indices), frames=len(frames), wall_s=time.time() - start)
+    return SensorUncertainty(sigma=[float(s) for s in fit.sigma], loss_estimate=float(np.mean(residuals**2)),
+                             loss_prior=float(((at_prior - target) ** 2).mean()))
 
 
 REFINEMENT_P = 0.05

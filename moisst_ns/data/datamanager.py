@@ -20,6 +20,7 @@ from torch import Tensor
 
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
+from nerfstudio.data.pixel_samplers import PixelSamplerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from moisst_ns.data.layout import RayLayout
@@ -95,8 +96,6 @@ class MoisstDataManager(VanillaDataManager):
         self.held_back = held_back_frames(self.rig.sensor_names, self.rig.frame_sensor_index, config.held_back_sensors)
         self.single_pixel_sampler = None
         if config.patch_size > 1 and config.patch_fraction < 1.0:
-            from nerfstudio.data.pixel_samplers import PixelSamplerConfig
-
             self.single_pixel_sampler = PixelSamplerConfig(num_rays_per_batch=config.train_num_rays_per_batch).setup()
 
     def _get_pixel_sampler(self, dataset, num_rays_per_batch: int):

@@ -85,7 +85,6 @@ class MoisstRigDataParser(DataParser):
 
         # Normalisation: world_model = scale * (world - center); no rotation, so extrinsics keep their axes.
         world = WorldFrame.fit(rig.trajectory_positions, TRAJECTORY_EXTENT)
-        center, scale = world.center, world.scale
 
         camera_frames = [i for i, f in enumerate(rig.frames) if rig.sensors[f.sensor].type == "camera"]
         if not camera_frames:
@@ -101,7 +100,6 @@ class MoisstRigDataParser(DataParser):
 
         intr = [rig.sensors[f.sensor].intrinsics for f in frames]
         distortion = torch.tensor([[k["k1"], k["k2"], k.get("k3", 0.0), k.get("k4", 0.0), k["p1"], k["p2"]] for k in intr]).float()
-        camera_types = [CAMERA_MODEL_TO_TYPE[k["camera_model"]] for k in intr]
         cameras = Cameras(
             camera_to_worlds=torch.from_numpy(c2w[:, :3, :4]).float(),
             fx=torch.tensor([k["fl_x"] for k in intr]).float()[:, None],
@@ -111,21 +109,21 @@ class MoisstRigDataParser(DataParser):
             width=torch.tensor([k["w"] for k in intr])[:, None],
             height=torch.tensor([k["h"] for k in intr])[:, None],
             distortion_params=distortion,
-            camera_type=torch.tensor([int(t.value) for t in camera_types])[:, None],
+            camera_type=torch.tensor([int(CAMERA_MODEL_TO_TYPE[k["camera_model"]].value) for k in intr])[:, None],
             times=stamps.float()[:, None],
             metadata={"sensor_idx": sensor_idx[:, None]},
         )
         transform = torch.eye(4)[:3, :]
         # nerfstudio applies the transform, then the scale: store the translation pre-scale so that
         # model = scale * (transform @ world) holds.
-        transform[:, 3] = torch.from_numpy(-center).float()
+        transform[:, 3] = torch.from_numpy(-world.center).float()
         data.world, data.frame_sensor_index, data.frame_stamps = world, sensor_idx.numpy(), stamps.numpy()
         return DataparserOutputs(
             image_filenames=[rig.root / f.file_path for f in frames],
             cameras=cameras,
             scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
             dataparser_transform=transform,
-            dataparser_scale=scale,
+            dataparser_scale=world.scale,
             metadata={"moisst_rig": data},
         )
 
