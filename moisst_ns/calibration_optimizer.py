@@ -46,7 +46,8 @@ class CalibrationOptimizerConfig(CameraOptimizerConfig):
 
 
 class CalibrationOptimizer(CameraOptimizer):
-    """Rig-level pose optimiser. ``rig`` may be None only while nerfacto builds its default (then it is inert)."""
+    """Rig-level pose optimiser. ``rig`` is None only in the instance nerfacto's ``populate_modules`` builds and
+    ``MoisstModel`` replaces at once (never used)."""
 
     config: CalibrationOptimizerConfig
 
@@ -58,11 +59,7 @@ class CalibrationOptimizer(CameraOptimizer):
         rig: Optional[RigData] = None,
         **kwargs,
     ) -> None:
-        torch.nn.Module.__init__(self)
-        self.config = config
-        self.num_cameras = num_cameras
-        self.device = device
-        self.non_trainable_camera_indices = None
+        super().__init__(config, num_cameras, device)  # nerfstudio's (its own parameters only with a ``mode`` not "off")
         self.rig: Optional[RigCalibration] = None
         if rig is None:
             return
@@ -88,16 +85,13 @@ class CalibrationOptimizer(CameraOptimizer):
 
     def set_trainable(self, enabled: bool) -> None:
         """Freeze or release the calibration (used by the warm-up schedule)."""
-        if self.rig is None:
-            return
         self.rig.rotvec.requires_grad_(enabled and self.config.optimize_extrinsics)
         self.rig.translation.requires_grad_(enabled and self.config.optimize_extrinsics)
         self.rig.time_offset.requires_grad_(enabled and self.config.optimize_time_offsets)
 
     def project(self) -> None:
         """Keep the corrections inside their bounds (call after every optimiser step)."""
-        if self.rig is not None:
-            self.rig.clamp_(self.config.max_translation, np.deg2rad(self.config.max_rotation_deg), self.config.max_time_offset)
+        self.rig.clamp_(self.config.max_translation, np.deg2rad(self.config.max_rotation_deg), self.config.max_time_offset)
 
     # --- poses --------------------------------------------------------------------------------------------------
 
@@ -114,7 +108,7 @@ class CalibrationOptimizer(CameraOptimizer):
 
     def forward(self, indices: Int[Tensor, "camera_indices"]) -> Float[Tensor, "camera_indices 3 4"]:
         """Per training frame, ``prior_c2w^-1 @ calibrated_c2w`` (a 3x4 in the camera frame), as the viewer expects."""
-        if self.rig is None or indices.numel() == 0:
+        if indices.numel() == 0:
             return torch.eye(4, device=indices.device)[None, :3, :4].tile(indices.shape[0], 1, 1)
         indices = indices.reshape(-1).long()
         delta = torch.linalg.inv(self.prior_c2w[indices.to(self.prior_c2w.device)]) @ self.frame_c2w(indices)
@@ -129,20 +123,18 @@ class CalibrationOptimizer(CameraOptimizer):
         (``metadata["is_lidar"]``) are built from scratch: origin ``T_r(t + delta_L) @ ref_T_L`` at the point's own
         time, direction through the point.
         """
-        if self.rig is None or raybundle.camera_indices is None:
+        if raybundle.camera_indices is None:
             return
-        is_lidar = raybundle.metadata.get("is_lidar")
-        rows = raybundle.metadata.get("row_time")
-        if is_lidar is None or not bool(is_lidar.any()):
+        meta = raybundle.metadata
+        rows = meta.get("row_time")
+        if "is_lidar" not in meta or not bool(meta["is_lidar"].any()):
             raybundle.origins, raybundle.directions = self.camera_rays(raybundle.camera_indices, raybundle.origins, raybundle.directions, rows)
             return
-        cam = ~is_lidar[:, 0]
+        lid = meta["is_lidar"][:, 0]
         origins, directions = raybundle.origins.clone(), raybundle.directions.clone()
-        if bool(cam.any()):
-            origins[cam], directions[cam] = self.camera_rays(raybundle.camera_indices[cam], raybundle.origins[cam], raybundle.directions[cam],
-                                                             None if rows is None else rows[cam])
-        lid = is_lidar[:, 0]
-        meta = raybundle.metadata
+        if not bool(lid.all()):
+            origins[~lid], directions[~lid] = self.camera_rays(raybundle.camera_indices[~lid], raybundle.origins[~lid], raybundle.directions[~lid],
+                                                               None if rows is None else rows[~lid])
         origins[lid], directions[lid] = self.lidar_rays(meta["lidar_sensor"][lid, 0], meta["lidar_stamp"][lid, 0], meta["lidar_point"][lid])
         raybundle.origins, raybundle.directions = origins, directions
 
@@ -151,14 +143,10 @@ class CalibrationOptimizer(CameraOptimizer):
         """Re-pose camera rays generated at the prior poses (their frames' stamps) onto the calibrated poses, at
         ``row_time`` seconds after the stamps where given (a rolling shutter's rows)."""
         idx = camera_indices.reshape(-1).long()
-        if row_time is not None and bool((row_time != 0).any()):
-            key = torch.stack([idx.to(row_time.dtype), row_time.reshape(-1)], dim=-1)
-            unique_key, inverse = torch.unique(key, dim=0, return_inverse=True)
-            unique = unique_key[:, 0].long()
-            calibrated = self.frame_c2w(unique, row_time=unique_key[:, 1])
-        else:
-            unique, inverse = torch.unique(idx, return_inverse=True)
-            calibrated = self.frame_c2w(unique)
+        rows = torch.zeros(len(idx), dtype=torch.float64, device=idx.device) if row_time is None else row_time.reshape(-1)
+        unique_key, inverse = torch.unique(torch.stack([idx.to(rows.dtype), rows], dim=-1), dim=0, return_inverse=True)  # (frame, row time)
+        unique = unique_key[:, 0].long()
+        calibrated = self.frame_c2w(unique, row_time=unique_key[:, 1])
         prior = self.prior_c2w[unique.to(self.prior_c2w.device)]
         rot = (calibrated[:, :3, :3] @ prior[:, :3, :3].transpose(-1, -2)).to(directions)[inverse]
         new_origins = origins - prior[inverse, :3, 3].to(origins) + calibrated[inverse, :3, 3].to(origins)
@@ -187,7 +175,7 @@ class CalibrationOptimizer(CameraOptimizer):
 
     def apply_to_camera(self, camera: Cameras) -> Tensor:
         """Calibrated camera-to-world (3x4) of a training camera carrying ``metadata["cam_idx"]``."""
-        if self.rig is None or camera.metadata is None or "cam_idx" not in camera.metadata:
+        if camera.metadata is None or "cam_idx" not in camera.metadata:
             return camera.camera_to_worlds
         idx = torch.as_tensor([int(camera.metadata["cam_idx"])])
         return self.frame_c2w(idx)[:, :3, :4].to(camera.camera_to_worlds)
@@ -196,11 +184,7 @@ class CalibrationOptimizer(CameraOptimizer):
 
     def get_metrics_dict(self, metrics_dict: dict) -> None:
         """Per-sensor estimates and, with ground truth, errors (cm, deg, ms)."""
-        if self.rig is None:
-            return
-        for name, values in self.sensor_summary().items():
-            for key, value in values.items():
-                metrics_dict[f"calib/{name}/{key}"] = value
+        metrics_dict.update({f"calib/{name}/{key}": value for name, values in self.sensor_summary().items() for key, value in values.items()})
 
     @torch.no_grad()
     def sensor_summary(self) -> Dict[str, Dict[str, float]]:
@@ -235,7 +219,6 @@ class CalibrationOptimizer(CameraOptimizer):
         return out
 
     def get_param_groups(self, param_groups: dict) -> None:
-        if self.rig is not None:
-            param_groups["calibration_rotation"] = [self.rig.rotvec]
-            param_groups["calibration_translation"] = [self.rig.translation]
-            param_groups["calibration_time"] = [self.rig.time_offset]
+        param_groups["calibration_rotation"] = [self.rig.rotvec]
+        param_groups["calibration_translation"] = [self.rig.translation]
+        param_groups["calibration_time"] = [self.rig.time_offset]

@@ -35,11 +35,7 @@ def cpp_compiler() -> Optional[str]:
     Returns:
         Its path, or None.
     """
-    for name in ("g++", "c++", "clang++"):
-        path = shutil.which(name)
-        if path is not None:
-            return path
-    return None
+    return next(filter(None, map(shutil.which, ("g++", "c++", "clang++"))), None)
 
 
 def _compiled_forward(encoding: nn.Module) -> Callable[[Tensor], Tensor]:

@@ -31,6 +31,7 @@ from moisst_ns.data.layout import RayLayout
 from moisst_ns.losses import depth_smoothness_loss, dssim_loss, lidar_depth_loss, map_range_loss
 from moisst_ns.schedules import rescale_schedules
 from moisst_ns.calibration_optimizer import CalibrationOptimizer, CalibrationOptimizerConfig
+from moisst_ns.compiled_grid import compile_hash_encodings
 from moisst_ns.contraction import use_linf_contraction
 
 allow_numpy_in_checkpoints()  # nerfstudio 1.1.5 checkpoints under torch >= 2.6 (moisst_ns.compat)
@@ -129,8 +130,7 @@ class MoisstModel(NerfactoModel):
         with without_lpips():
             super().populate_modules()
         use_linf_contraction(self)  # the same contraction without torch's slow CPU max norm (moisst_ns.contraction)
-        metadata = self.kwargs.get("metadata") or {}
-        rig = metadata.get("moisst_rig")
+        rig = (self.kwargs.get("metadata") or {}).get("moisst_rig")
         if rig is None:
             raise ValueError("MoisstModel needs a rig: use the moisst-rig dataparser (ns-train moisst --data DATASET)")
         self.camera_optimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu", rig=rig)
@@ -151,6 +151,7 @@ class MoisstModel(NerfactoModel):
         # ~40 % of a ``moisst`` step (docs/benchmarks.md). The field's samples keep their gradient.
         self.density_fns = [_detached_positions(fn) for fn in self.density_fns]
         self._step = 0
+        self._hash_optimizer = None  # the ``hash_grids`` optimiser whose weight decay ends at ``hash_weight_decay_steps``
         # With a LiDAR as the reference sensor no camera's poses are known: no camera rays can build the scene alone,
         # so the detached registration phase is skipped and every sensor trains jointly (the paper's schedule).
         self._reference_is_camera = bool((self.camera_optimizer.frame_sensor == rig.reference_index).any())
@@ -169,13 +170,14 @@ class MoisstModel(NerfactoModel):
 
     def _update_schedule(self, step: int) -> None:
         self._step = step
-        start, end = self.config.coarse_to_fine
-        if (start, end) != (0, 0) and self._hash_encodings:
-            progress = 1.0 if step >= end else max(step - start, 0) / max(end - start, 1)
-            self._c2f_progress = None if progress >= 1.0 else progress
+        start, end = self.config.coarse_to_fine  # (0, 0): never on (the levels' hooks are registered only otherwise)
+        self._c2f_progress = None if step >= end else max(step - start, 0) / max(end - start, 1)
         if self._warmup_active and step >= self.config.calibration_warmup_steps:
             self._warmup_active = False
             self.camera_optimizer.set_trainable(True)
+        if self._hash_optimizer is not None and step >= self.config.hash_weight_decay_steps:
+            for group in self._hash_optimizer.param_groups:
+                group["weight_decay"] = 0.0
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         trainer = training_callback_attributes.trainer
@@ -184,10 +186,8 @@ class MoisstModel(NerfactoModel):
         callbacks = super().get_training_callbacks(training_callback_attributes)
         steps = trainer.config.max_num_iterations if trainer is not None else self.config.schedule_steps
         self._compile_hash_grid(steps)
-        callbacks.append(
-            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self._update_schedule, update_every_num_iters=1)
-        )
-        callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_step, update_every_num_iters=1))
+        callbacks += [TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self._update_schedule),  # every step
+                      TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._after_step)]
         if trainer is not None and self.config.calibration_log_every > 0:
             history = Path(trainer.base_dir) / "calibration_history.csv"
             callbacks.append(
@@ -198,14 +198,8 @@ class MoisstModel(NerfactoModel):
                 )
             )
         optimizers = training_callback_attributes.optimizers
-        if self.config.hash_weight_decay_steps > 0 and optimizers is not None and "hash_grids" in optimizers.optimizers:
-
-            def remove_hash_decay(step: int) -> None:
-                if step >= self.config.hash_weight_decay_steps:
-                    for group in optimizers.optimizers["hash_grids"].param_groups:
-                        group["weight_decay"] = 0.0
-
-            callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], remove_hash_decay, update_every_num_iters=1))
+        if self.config.hash_weight_decay_steps > 0 and optimizers is not None:
+            self._hash_optimizer = optimizers.optimizers.get("hash_grids")
         return callbacks
 
     def _compile_hash_grid(self, steps: int) -> None:
@@ -213,8 +207,6 @@ class MoisstModel(NerfactoModel):
         mode = self.config.compile_hash_grid
         if mode == "off" or (mode == "auto" and (steps < COMPILE_MIN_STEPS or self.device.type != "cpu")):
             return
-        from moisst_ns.compiled_grid import compile_hash_encodings
-
         started = time.perf_counter()
         why_not = compile_hash_encodings([e for e in self._hash_encodings if e.tcnn_encoding is None], self.device)
         if why_not is None:
@@ -236,11 +228,10 @@ class MoisstModel(NerfactoModel):
     def _after_step(self, step: int) -> None:
         """Stop on non-finite calibration parameters (naming the sensor and step), then apply the bounds."""
         rig = self.camera_optimizer.rig
-        if rig is not None:
-            bad = ~(torch.isfinite(rig.rotvec).all(-1) & torch.isfinite(rig.translation).all(-1) & torch.isfinite(rig.time_offset))
-            if bool(bad.any()):
-                names = [rig.data.sensor_names[i] for i in torch.nonzero(bad)[:, 0].tolist()]
-                raise FloatingPointError(f"step {step}: the calibration of sensor(s) {', '.join(names)} became NaN/inf; stopping (nothing written)")
+        bad = ~(torch.isfinite(rig.rotvec).all(-1) & torch.isfinite(rig.translation).all(-1) & torch.isfinite(rig.time_offset))
+        if bool(bad.any()):
+            names = [rig.data.sensor_names[i] for i in torch.nonzero(bad)[:, 0].tolist()]
+            raise FloatingPointError(f"step {step}: the calibration of sensor(s) {', '.join(names)} became NaN/inf; stopping (nothing written)")
         self.camera_optimizer.project()
 
     def log_calibration(self, path: Path, step: int) -> None:
@@ -254,22 +245,20 @@ class MoisstModel(NerfactoModel):
 
     # --- registration: non-reference rays see a detached scene -------------------------------------------------
 
-    def _ray_sensor(self, ray_bundle) -> Tensor:
-        """Sensor index of every ray (camera rays through their frame, LiDAR rays from their metadata)."""
+    def _is_reference(self, frames: Tensor) -> Tensor:
+        """Whether each of the training frames ``frames`` is the reference sensor's (on the calibration's device)."""
         opt = self.camera_optimizer
-        sensor = opt.frame_sensor[ray_bundle.camera_indices.reshape(-1).long().to(opt.frame_sensor.device)]
-        is_lidar = ray_bundle.metadata.get("is_lidar")
-        if is_lidar is not None:
-            sensor = torch.where(is_lidar[:, 0], ray_bundle.metadata["lidar_sensor"][:, 0].to(sensor), sensor)
-        return sensor
+        return opt.frame_sensor[frames.reshape(-1).long().to(opt.frame_sensor.device)] == opt.rig.data.reference_index
 
     def get_outputs(self, ray_bundle):
         if not self.training and not torch.is_inference_mode_enabled():
             return self._with_normals(ray_bundle, super().get_outputs(ray_bundle))
         registering = self.training and self._step < self.config.registration_steps and self._reference_is_camera
-        if not registering or self._detached_pass or self.camera_optimizer.rig is None:
+        if not registering or self._detached_pass:
             return super().get_outputs(ray_bundle)
-        reference = self._ray_sensor(ray_bundle) == self.camera_optimizer.rig.data.reference_index
+        reference = self._is_reference(ray_bundle.camera_indices)  # a camera: a LiDAR ray's is a placeholder
+        if "is_lidar" in ray_bundle.metadata:
+            reference &= ~ray_bundle.metadata["is_lidar"][:, 0].to(reference.device)
         if bool(reference.all()) or not bool(reference.any()):
             return super().get_outputs(ray_bundle)
         ref_idx, other_idx = torch.nonzero(reference)[:, 0], torch.nonzero(~reference)[:, 0]
@@ -320,15 +309,15 @@ class MoisstModel(NerfactoModel):
         camera, lidar = self._split(outputs, batch)
         metrics = super().get_metrics_dict(camera, batch)
         if lidar is not None and "lidar_range" in batch:
-            error = outputs["expected_depth"][lidar, 0].detach() - batch["lidar_range"]
-            metrics["lidar_depth_rmse_m"] = error.pow(2).mean().sqrt() / float(self.camera_optimizer.world_scale)
+            mse = lidar_depth_loss(outputs["expected_depth"][lidar, 0].detach(), batch["lidar_range"])
+            metrics["lidar_depth_rmse_m"] = mse.sqrt() / float(self.camera_optimizer.world_scale)
         return metrics
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None):
         camera, lidar = self._split(outputs, batch)
         if self.training and self._warmup_active and self.config.reference_only_warmup:
-            keep = self._reference_rays(batch)
-            if keep is not None and keep.any():
+            keep = self._is_reference(batch["indices"][:, 0]).cpu()
+            if keep.any():
                 batch = dict(batch)
                 batch["image"] = batch["image"][keep]
                 if not bool(keep.all()) and "ray_layout" in batch:
@@ -339,9 +328,8 @@ class MoisstModel(NerfactoModel):
                     batch["map_range"] = batch["map_range"][keep.to(batch["map_range"].device)]
         loss_dict = super().get_loss_dict(camera, batch, metrics_dict)
         layout: Optional[RayLayout] = batch.get("ray_layout")
-        patch, num_patch = (layout.patch_size, layout.num_patch) if layout is not None else (1, 0)
-        if self.training and layout is not None and layout.has_patches and num_patch <= camera["rgb"].shape[0]:
-            shape = (-1, patch, patch)
+        if self.training and layout is not None and layout.has_patches and layout.num_patch <= camera["rgb"].shape[0]:
+            num_patch, shape = layout.num_patch, (-1, layout.patch_size, layout.patch_size)
             if self.config.dssim_loss_mult > 0:
                 image = self.renderer_rgb.blend_background(batch["image"][:num_patch].to(self.device))
                 loss_dict["dssim_loss"] = self.config.dssim_loss_mult * dssim_loss(
@@ -370,13 +358,6 @@ class MoisstModel(NerfactoModel):
         if self.config.depth_loss_ramp_steps <= 0:
             return 1.0
         return min(1.0, (self._step - self.config.depth_loss_start + 1) / self.config.depth_loss_ramp_steps)
-
-    def _reference_rays(self, batch) -> Optional[Tensor]:
-        rig = self.camera_optimizer.rig
-        if rig is None or "indices" not in batch:
-            return None
-        frame = batch["indices"][:, 0].long().to(self.camera_optimizer.frame_sensor.device)
-        return (self.camera_optimizer.frame_sensor[frame] == rig.data.reference_index).cpu()
 
     def get_image_metrics_and_images(self, outputs, batch):
         metrics, images = super().get_image_metrics_and_images(outputs, batch)

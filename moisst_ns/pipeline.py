@@ -56,7 +56,6 @@ class MoisstPipeline(VanillaPipeline):
             run = prepare_stages(config, Path(config.output_dir or config.run_dir or "."), config.seed, config.resume_from)
         super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
         self.stage_run: Optional[StageRun] = run
-        self._started = time.time()
         if test_mode != "val":  # loaded: training rays (``ns-export pointcloud``) at the calibrated poses, as in training
             self.datamanager.next_train = _calibrated(self.datamanager.next_train, self.model.camera_optimizer.apply_to_raybundle)
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -41,9 +41,6 @@ class SensorUncertainty:
     """Mean squared colour residual at the estimate."""
     loss_prior: float
     """The same with this sensor's correction at zero (the prior the NeRF started from)."""
-    rays: int
-    frames: int
-    wall_s: float
 
 
 def _param_views(rig, index: int):
@@ -78,27 +75,31 @@ def _ray_generator(datamanager):
 
 
 @torch.no_grad()
-def _render(model, datamanager, indices: torch.Tensor) -> torch.Tensor:
-    """Colours of the pixels ``indices`` at the current calibration (eval mode: the caller re-poses the rays)."""
+def _render(model, datamanager, indices: torch.Tensor, at: Sequence[Tuple[torch.Tensor, tuple, float]] = ()) -> torch.Tensor:
+    """Colours of the pixels ``indices`` at the current calibration, re-posing the rays (in eval mode), with the scalar
+    corrections ``at`` (``(parameter, index, value)``) set for the render and restored after."""
+    saved = [(param, i, float(param[i])) for param, i, _ in at]
+    for param, i, value in at:
+        param[i] = value
+    was_training = model.training
     out = []
-    generator = _ray_generator(datamanager)
-    for start in range(0, len(indices), CHUNK):
-        bundle = generator(indices[start:start + CHUNK].to(model.device))
-        model.camera_optimizer.apply_to_raybundle(bundle)
-        out.append(model(bundle)["rgb"].float().cpu())
+    model.eval()
+    try:
+        generator = _ray_generator(datamanager)
+        for start in range(0, len(indices), CHUNK):
+            bundle = generator(indices[start:start + CHUNK].to(model.device))
+            model.camera_optimizer.apply_to_raybundle(bundle)
+            out.append(model(bundle)["rgb"].float().cpu())
+    finally:
+        model.train(was_training)
+        for param, i, value in saved:
+            param[i] = value
     return torch.cat(out)
 
 
-def _render_at_prior(model, datamanager, sensor: int, indices: torch.Tensor) -> torch.Tensor:
-    """``_render`` with camera ``sensor``'s corrections at zero (its prior), restored after."""
-    saved = [(param, at, float(param[at])) for param, at in _param_views(model.camera_optimizer.rig, sensor)]
-    for param, at, _ in saved:
-        param[at] = 0.0
-    try:
-        return _render(model, datamanager, indices)
-    finally:
-        for param, at, value in saved:
-            param[at] = value
+def _at_prior(model, sensor: int) -> list:
+    """``_render``'s ``at`` that sets camera ``sensor``'s corrections to zero (its prior)."""
+    return [(param, i, 0.0) for param, i in _param_views(model.camera_optimizer.rig, sensor)]
 
 
 @torch.no_grad()
@@ -106,14 +107,13 @@ def sensor_uncertainty(pipeline, sensor: int, seed: int) -> Optional[SensorUncer
     """Standard deviations and held-back losses of camera ``sensor`` (None when it has no training frame).
 
     Args:
-        pipeline: the trained pipeline (its model is put in eval mode and back).
+        pipeline: the trained pipeline (its model renders in eval mode and is put back).
         sensor: sensor index in the rig.
         seed: seed of the pixel draw (independent of training's).
 
     Returns:
         ``SensorUncertainty`` or None.
     """
-    start = time.time()
     model, datamanager = pipeline.model, pipeline.datamanager
     rig = model.camera_optimizer.rig
     frames = torch.nonzero(model.camera_optimizer.frame_sensor.cpu() == sensor)[:, 0].tolist()
@@ -121,28 +121,17 @@ def sensor_uncertainty(pipeline, sensor: int, seed: int) -> Optional[SensorUncer
         return None
     generator = torch.Generator().manual_seed(seed * 1000 + sensor)
     indices, target = _draw_pixels(datamanager, frames, RAYS_PER_SENSOR, generator)
-    was_training = model.training
-    model.eval()
-    try:
-        base = _render(model, datamanager, indices)
-        columns = []
-        for (param, at), h in zip(_param_views(rig, sensor), FD_STEPS):
-            value = float(param[at])
-            param[at] = value + h
-            plus = _render(model, datamanager, indices)
-            param[at] = value - h
-            minus = _render(model, datamanager, indices)
-            param[at] = value
-            columns.append(((plus - minus) / (2 * h)).reshape(-1).numpy())
-        at_prior = _render_at_prior(model, datamanager, sensor, indices)
-    finally:
-        model.train(was_training)
+    base = _render(model, datamanager, indices)
+    columns = []
+    for (param, i), h in zip(_param_views(rig, sensor), FD_STEPS):
+        plus, minus = (_render(model, datamanager, indices, [(param, i, float(param[i]) + sign * h)]) for sign in (1, -1))
+        columns.append(((plus - minus) / (2 * h)).reshape(-1).numpy())
+    at_prior = _render(model, datamanager, indices, _at_prior(model, sensor))
     residuals = (base - target).reshape(-1).numpy().astype(np.float64)
     clusters = np.repeat(indices[:, 0].numpy(), 3)
     fit = least_squares_sigma(np.stack(columns, axis=1).astype(np.float64), residuals, clusters)
-    return SensorUncertainty(
-        sigma=[float(s) for s in fit.sigma], loss_estimate=float(np.mean(residuals**2)),
-        loss_prior=float(((at_prior - target) ** 2).mean()), rays=len(indices), frames=len(frames), wall_s=time.time() - start)
+    return SensorUncertainty(sigma=[float(s) for s in fit.sigma], loss_estimate=float(np.mean(residuals**2)),
+                             loss_prior=float(((at_prior - target) ** 2).mean()))
 
 
 REFINEMENT_P = 0.05
@@ -178,39 +167,13 @@ def refinement_check(pipeline, names: List[str], seed: int) -> Dict[str, dict]:
             out[name] = {"frames": len(frames), "loss_refined": None, "loss_stage": None, "p_value": None, "kept": False}
             continue
         indices, target = _draw_pixels(datamanager, frames, 4 * RAYS_PER_SENSOR, torch.Generator().manual_seed(seed * 1000 + sensor + 500))
-        was_training = model.training
-        model.eval()
-        try:
-            refined = _render(model, datamanager, indices)
-            stage = _render_at_prior(model, datamanager, sensor, indices)
-        finally:
-            model.train(was_training)
+        refined = _render(model, datamanager, indices)
+        stage = _render(model, datamanager, indices, _at_prior(model, sensor))
         frame = indices[:, 0].numpy()
         per_frame = [[float(((r[frame == f] - target[frame == f]) ** 2).mean()) for f in frames] for r in (refined, stage)]
         p = float(ttest_rel(per_frame[1], per_frame[0], alternative="greater").pvalue)
         out[name] = {"frames": len(frames), "loss_refined": float(np.mean(per_frame[0])), "loss_stage": float(np.mean(per_frame[1])),
                      "p_value": p, "kept": bool(p < REFINEMENT_P)}
-    return out
-
-
-def nerf_uncertainties(pipeline, seed: int) -> Dict[str, SensorUncertainty]:
-    """``sensor_uncertainty`` of every trainable camera of the run's rig (frozen and reference sensors skipped).
-
-    Args:
-        pipeline: the trained pipeline.
-        seed: seed of the pixel draws.
-
-    Returns:
-        ``{sensor name: SensorUncertainty}``.
-    """
-    rig = pipeline.model.camera_optimizer.rig
-    out = {}
-    for i, name in enumerate(rig.data.sensor_names):
-        if not bool(rig.trainable[i]) or rig.data.sensor_types[i] != "camera":
-            continue
-        found = sensor_uncertainty(pipeline, i, seed)
-        if found is not None:
-            out[name] = found
     return out
 
 
@@ -252,7 +215,10 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
 
     rig = pipeline.model.camera_optimizer.rig
     dataset_prior = prior_calibration(rig.data)
-    measured = nerf_uncertainties(pipeline, seed) if seed is not None else {}
+    measured = {} if seed is None else {  # every trainable camera (frozen and reference sensors skipped)
+        name: sensor_uncertainty(pipeline, i, seed) for i, name in enumerate(rig.data.sensor_names)
+        if bool(rig.trainable[i]) and rig.data.sensor_types[i] == "camera"}
+    measured = {name: m for name, m in measured.items() if m is not None}
     final = Calibration(estimate.reference_sensor, dict(estimate.T_ref_sensor), dict(estimate.time_offset), {}, estimate.trajectory_T_reference)
     drive_weak = {r.sensor: r.weak for r in drive}
     record, lines = {}, []

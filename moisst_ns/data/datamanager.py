@@ -20,6 +20,7 @@ from torch import Tensor
 
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
+from nerfstudio.data.pixel_samplers import PixelSamplerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from moisst_ns.data.layout import RayLayout
@@ -93,17 +94,16 @@ class MoisstDataManager(VanillaDataManager):
         self.frame_readout, self.frame_height = frame_readouts(self.rig, full, self.train_dataset.cameras)
         self.map_range, self.map_slot = self._map_ranges()
         self.held_back = held_back_frames(self.rig.sensor_names, self.rig.frame_sensor_index, config.held_back_sensors)
-        if config.patch_size > 1:
-            # nerfstudio 1.1.5's PatchPixelSampler rounds the batch with its default patch size (32) before it
-            # takes ours, so e.g. 512 rays became 0: round again with the real patch size.
-            self.train_pixel_sampler.set_num_rays_per_batch(config.train_num_rays_per_batch)
-            if getattr(self, "eval_pixel_sampler", None) is not None:
-                self.eval_pixel_sampler.set_num_rays_per_batch(config.eval_num_rays_per_batch)
         self.single_pixel_sampler = None
         if config.patch_size > 1 and config.patch_fraction < 1.0:
-            from nerfstudio.data.pixel_samplers import PixelSamplerConfig
-
             self.single_pixel_sampler = PixelSamplerConfig(num_rays_per_batch=config.train_num_rays_per_batch).setup()
+
+    def _get_pixel_sampler(self, dataset, num_rays_per_batch: int):
+        sampler = super()._get_pixel_sampler(dataset, num_rays_per_batch)
+        # nerfstudio 1.1.5's PatchPixelSampler rounds the batch with its default patch size (32) before it takes
+        # ours, so e.g. 512 rays became 0: round again with the real patch size.
+        sampler.set_num_rays_per_batch(num_rays_per_batch)
+        return sampler
 
     def _map_ranges(self) -> Tuple[Tensor | None, Tensor | None]:
         """Range images of the LiDAR map for the training frames of ``map_range_sensors`` (model units, NaN: none),
@@ -124,9 +124,9 @@ class MoisstDataManager(VanillaDataManager):
         cameras = self.train_dataset.cameras
         sensor = [self.rig.sensor_names[i] for i in self.rig.frame_sensor_index]
         frames = [i for i, n in enumerate(sensor) if n in names]
-        slot = torch.full((len(sensor),), -1, dtype=torch.long)
         if not frames:
             return None, None
+        slot = torch.full((len(sensor),), -1, dtype=torch.long)
         height, width = int(cameras.height.max()), int(cameras.width.max())
         ranges = torch.full((len(frames), height, width), float("nan"))
         c2w = cameras.camera_to_worlds.double().numpy()
@@ -161,11 +161,8 @@ class MoisstDataManager(VanillaDataManager):
             return sample_images(sampler, image_batch, torch.nonzero(trained)[:, 0], count)
         is_ref = self.frame_is_reference[image_batch["image_idx"].cpu()]
         n_ref = int(round(count * fraction / unit)) * unit
-        parts = []
-        for mask, n in ((is_ref & trained, n_ref), (~is_ref & trained, count - n_ref)):
-            if n > 0 and bool(mask.any()):
-                parts.append(sample_images(sampler, image_batch, torch.nonzero(mask)[:, 0], n))
-        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+        return joined([sample_images(sampler, image_batch, torch.nonzero(mask)[:, 0], n) if n > 0 and bool(mask.any()) else None
+                       for mask, n in ((is_ref & trained, n_ref), (~is_ref & trained, count - n_ref))])
 
     @property
     def has_lidar(self) -> bool:
@@ -188,35 +185,31 @@ class MoisstDataManager(VanillaDataManager):
         fraction = self.reference_fraction(step)
         total = self.train_pixel_sampler.num_rays_per_batch
         patch = max(self.config.patch_size, 1)
-        if self.single_pixel_sampler is not None and isinstance(image_batch["image"], torch.Tensor):
+        cached = isinstance(image_batch["image"], torch.Tensor)  # not with variable-resolution images (a list)
+        if self.single_pixel_sampler is not None and cached:
             n_patch = int(round(total * self.config.patch_fraction / patch**2)) * patch**2
-            parts = [self._sample(self.train_pixel_sampler, image_batch, n_patch, fraction),
-                     self._sample(self.single_pixel_sampler, image_batch, total - n_patch, fraction)]
-            parts = [p for p in parts if p is not None]
-            batch = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-        elif not isinstance(image_batch["image"], torch.Tensor) or (fraction is None and not bool(self.held_back.any())):
-            batch = self.train_pixel_sampler.sample(image_batch)
+            batch = joined([self._sample(self.train_pixel_sampler, image_batch, n_patch, fraction),
+                            self._sample(self.single_pixel_sampler, image_batch, total - n_patch, fraction)])
         else:
-            batch = self._sample(self.train_pixel_sampler, image_batch, total, fraction)
+            if not cached or (fraction is None and not bool(self.held_back.any())):
+                batch = self.train_pixel_sampler.sample(image_batch)
+            else:
+                batch = self._sample(self.train_pixel_sampler, image_batch, total, fraction)
+            n_patch = len(batch["indices"]) if patch > 1 else 0
         ray_bundle = self.train_ray_generator(batch["indices"])
-        if self.frame_readout is not None:  # a rolling shutter: each ray at its row's time (the calibration optimiser)
-            ray_bundle.metadata["row_time"] = pixel_row_times(batch["indices"], self.frame_readout, self.frame_height).to(ray_bundle.origins.device)
-        num_camera = len(ray_bundle)
-        if self.single_pixel_sampler is not None and isinstance(image_batch["image"], torch.Tensor):
-            layout = RayLayout(num_camera, num_patch=n_patch, patch_size=patch)
-        else:
-            layout = RayLayout(num_camera, num_patch=num_camera if patch > 1 else 0, patch_size=patch)
-        batch["ray_layout"] = layout
-        if self.map_range is not None:
-            batch["map_range"] = self.map_range_of(batch["indices"]).to(ray_bundle.origins.device)
-        if not self.has_lidar or step < self.config.lidar_start_step:
-            return ray_bundle, batch
         device = ray_bundle.origins.device
-        pick = torch.randint(self.lidar_points.shape[0], (self.config.lidar_rays_per_batch,), generator=self.lidar_generator)
+        if self.frame_readout is not None:  # a rolling shutter: each ray at its row's time (the calibration optimiser)
+            ray_bundle.metadata["row_time"] = pixel_row_times(batch["indices"], self.frame_readout, self.frame_height).to(device)
+        num_lidar = self.config.lidar_rays_per_batch if self.has_lidar and step >= self.config.lidar_start_step else 0
+        batch["ray_layout"] = RayLayout(len(ray_bundle), num_lidar, n_patch, patch)
+        if self.map_range is not None:
+            batch["map_range"] = self.map_range_of(batch["indices"]).to(device)
+        if not num_lidar:
+            return ray_bundle, batch
+        pick = torch.randint(self.lidar_points.shape[0], (num_lidar,), generator=self.lidar_generator)
         points = self.lidar_points[pick].to(device)
         batch["lidar_range"] = points.norm(dim=-1) * float(self.rig.world.scale)
         batch["lidar_sensor"] = self.lidar_sensor[pick].to(device)
-        batch["ray_layout"] = RayLayout(num_camera, len(pick), layout.num_patch, layout.patch_size)
         return with_lidar_rays(ray_bundle, points, self.lidar_stamps[pick].to(device), batch["lidar_sensor"]), batch
 
 
@@ -250,12 +243,16 @@ def held_back_frames(sensor_names, frame_sensor, held_back_sensors) -> Tensor:
     unknown = set(held_back_sensors) - set(sensor_names)
     if unknown:
         raise ValueError(f"held_back_sensors: {sorted(unknown)} not sensors of the rig {list(sensor_names)}")
-    sensor = [sensor_names[i] for i in frame_sensor]
-    held, seen = torch.zeros(len(sensor), dtype=torch.bool), {}
-    for i, name in enumerate(sensor):
-        k = seen[name] = seen.get(name, -1) + 1
-        held[i] = name in held_back_sensors and k % HELD_BACK_EVERY == 2
+    held = torch.zeros(len(frame_sensor), dtype=torch.bool)
+    for name in held_back_sensors:
+        held[torch.as_tensor(np.flatnonzero(np.asarray(frame_sensor) == sensor_names.index(name))[2::HELD_BACK_EVERY])] = True
     return held
+
+
+def joined(parts) -> Dict:
+    """Sampled batches (None: an empty part) concatenated, key by key."""
+    parts = [p for p in parts if p is not None]
+    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
 
 def sample_images(sampler, image_batch: Dict, positions: Tensor, count: int) -> Dict:

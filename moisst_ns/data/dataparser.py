@@ -63,16 +63,12 @@ class MoisstRigDataParser(DataParser):
 
     config: MoisstRigDataParserConfig
 
-    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        return self.rig_outputs(self.rig_folder(), split)
-
     def rig_folder(self) -> Path:
         """The ``moisst-rig/1`` folder read (``MoisstPipeline`` runs the calibration stages on it)."""
         return Path(self.config.data)
 
-    def rig_outputs(self, root: Path, split: str) -> DataparserOutputs:
-        """Dataparser outputs of the ``moisst-rig/1`` dataset in ``root``."""
-        rig = load_rig(root)
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        rig = load_rig(self.rig_folder())
         dataset_priors, prior = None, None
         if self.config.prior_calibration is not None:
             dataset_priors, prior = Calibration.from_rig(rig), load_calibration(self.config.prior_calibration)
@@ -89,7 +85,6 @@ class MoisstRigDataParser(DataParser):
 
         # Normalisation: world_model = scale * (world - center); no rotation, so extrinsics keep their axes.
         world = WorldFrame.fit(rig.trajectory_positions, TRAJECTORY_EXTENT)
-        center, scale = world.center, world.scale
 
         camera_frames = [i for i, f in enumerate(rig.frames) if rig.sensors[f.sensor].type == "camera"]
         if not camera_frames:
@@ -104,10 +99,7 @@ class MoisstRigDataParser(DataParser):
             c2w = world.camera_to_model(RigCalibration(data).prior_sensor_poses(sensor_idx, stamps)).numpy()
 
         intr = [rig.sensors[f.sensor].intrinsics for f in frames]
-        distortion = torch.zeros(len(frames), 6)
-        for i, k in enumerate(intr):
-            distortion[i] = torch.tensor([k["k1"], k["k2"], k.get("k3", 0.0), k.get("k4", 0.0), k["p1"], k["p2"]])
-        camera_types = [CAMERA_MODEL_TO_TYPE[k["camera_model"]] for k in intr]
+        distortion = torch.tensor([[k["k1"], k["k2"], k.get("k3", 0.0), k.get("k4", 0.0), k["p1"], k["p2"]] for k in intr]).float()
         cameras = Cameras(
             camera_to_worlds=torch.from_numpy(c2w[:, :3, :4]).float(),
             fx=torch.tensor([k["fl_x"] for k in intr]).float()[:, None],
@@ -117,21 +109,21 @@ class MoisstRigDataParser(DataParser):
             width=torch.tensor([k["w"] for k in intr])[:, None],
             height=torch.tensor([k["h"] for k in intr])[:, None],
             distortion_params=distortion,
-            camera_type=torch.tensor([int(t.value) for t in camera_types])[:, None],
+            camera_type=torch.tensor([int(CAMERA_MODEL_TO_TYPE[k["camera_model"]].value) for k in intr])[:, None],
             times=stamps.float()[:, None],
             metadata={"sensor_idx": sensor_idx[:, None]},
         )
         transform = torch.eye(4)[:3, :]
         # nerfstudio applies the transform, then the scale: store the translation pre-scale so that
         # model = scale * (transform @ world) holds.
-        transform[:, 3] = torch.from_numpy(-center).float()
+        transform[:, 3] = torch.from_numpy(-world.center).float()
         data.world, data.frame_sensor_index, data.frame_stamps = world, sensor_idx.numpy(), stamps.numpy()
         return DataparserOutputs(
             image_filenames=[rig.root / f.file_path for f in frames],
             cameras=cameras,
             scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])),
             dataparser_transform=transform,
-            dataparser_scale=scale,
+            dataparser_scale=world.scale,
             metadata={"moisst_rig": data},
         )
 
