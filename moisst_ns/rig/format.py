@@ -127,6 +127,13 @@ def _number(value, file, fieldname, positive=False) -> float:
     return float(value)
 
 
+def _require(raw: dict, keys, file, where: str = "", problem: str = "missing") -> None:
+    """``RigFormatError`` naming the first of ``keys`` that ``raw`` lacks (field ``where`` + the key)."""
+    for key in keys:
+        if key not in raw:
+            raise RigFormatError(file, f"{where}{key}", problem)
+
+
 def check_name(name: str, file, fieldname: str) -> str:
     """Sensor names become folder and metric names: refuse anything that could act as a path."""
     if (
@@ -157,8 +164,7 @@ def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
     stype = raw.get("type")
     if stype not in SENSOR_TYPES:
         raise RigFormatError(file, f"{where}.type", f"must be one of {SENSOR_TYPES}, got {stype!r}")
-    if "T_ref_sensor" not in raw:
-        raise RigFormatError(file, f"{where}.T_ref_sensor", "missing")
+    _require(raw, ["T_ref_sensor"], file, f"{where}.")
     allowed = {"type", "T_ref_sensor", "time_offset"}
     if stype == "camera":
         allowed |= set(CAMERA_KEYS) | set(DISTORTION_KEYS) | {"k3", "k4", "readout_time"}
@@ -172,9 +178,7 @@ def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
         time_offset=_number(raw.get("time_offset", 0.0), file, f"{where}.time_offset"),
     )
     if stype == "camera":
-        for key in CAMERA_KEYS:
-            if key not in raw:
-                raise RigFormatError(file, f"{where}.{key}", "missing (required for a camera)")
+        _require(raw, CAMERA_KEYS, file, f"{where}.", "missing (required for a camera)")
         model = raw["camera_model"]
         if model not in CAMERA_MODELS:
             raise RigFormatError(file, f"{where}.camera_model", f"unsupported camera model {model!r}; supported: {', '.join(CAMERA_MODELS)}")
@@ -239,9 +243,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
     raw = read_json(file)
     if not isinstance(raw, dict):
         raise RigFormatError(file, "(top level)", "must be a JSON object")
-    for key in TOP_KEYS:
-        if key not in raw:
-            raise RigFormatError(file, key, "missing")
+    _require(raw, TOP_KEYS, file)
     unknown = sorted(set(raw) - set(TOP_KEYS) - {"comment", "metadata", "trajectory_accuracy"})
     if unknown:
         raise RigFormatError(file, unknown[0], "unknown key")
@@ -267,9 +269,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
         where = f"frames[{i}]"
         if not isinstance(fr, dict):
             raise RigFormatError(file, where, "must be an object")
-        for key in ("sensor", "timestamp", "file_path"):
-            if key not in fr:
-                raise RigFormatError(file, f"{where}.{key}", "missing")
+        _require(fr, ("sensor", "timestamp", "file_path"), file, f"{where}.")
         unknown = sorted(set(fr) - {"sensor", "timestamp", "file_path"})
         if unknown:
             raise RigFormatError(file, f"{where}.{unknown[0]}", "unknown key")
@@ -378,9 +378,7 @@ def load_calibration(path: Path | str) -> Calibration:
     raw = read_json(file)
     if not isinstance(raw, dict):
         raise RigFormatError(file, "(top level)", "must be a JSON object")
-    for key in ("reference_sensor", "sensors"):
-        if key not in raw:
-            raise RigFormatError(file, key, "missing")
+    _require(raw, ("reference_sensor", "sensors"), file)
     if not isinstance(raw["sensors"], dict) or not isinstance(raw["reference_sensor"], str) or raw["reference_sensor"] not in raw["sensors"]:
         raise RigFormatError(file, "reference_sensor", f"{raw['reference_sensor']!r} is not in sensors")
     transforms, offsets, trust = {}, {}, {}
