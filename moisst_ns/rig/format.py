@@ -127,11 +127,15 @@ def _number(value, file, fieldname, positive=False) -> float:
     return float(value)
 
 
-def _require(raw: dict, keys, file, where: str = "", problem: str = "missing") -> None:
-    """``RigFormatError`` naming the first of ``keys`` that ``raw`` lacks (field ``where`` + the key)."""
+def _require(raw: dict, keys, file, where: str = "", problem: str = "missing", allowed=None, unknown: str = "unknown key") -> None:
+    """``RigFormatError`` naming the first of ``keys`` that ``raw`` lacks, then (with ``allowed``) the first of its keys
+    not in ``allowed`` (the field ``where`` + the key)."""
     for key in keys:
         if key not in raw:
             raise RigFormatError(file, f"{where}{key}", problem)
+    extra = sorted(set(raw) - set(allowed)) if allowed is not None else []
+    if extra:
+        raise RigFormatError(file, f"{where}{extra[0]}", unknown)
 
 
 def check_name(name: str, file, fieldname: str) -> str:
@@ -164,13 +168,10 @@ def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
     stype = raw.get("type")
     if stype not in SENSOR_TYPES:
         raise RigFormatError(file, f"{where}.type", f"must be one of {SENSOR_TYPES}, got {stype!r}")
-    _require(raw, ["T_ref_sensor"], file, f"{where}.")
     allowed = {"type", "T_ref_sensor", "time_offset"}
     if stype == "camera":
         allowed |= set(CAMERA_KEYS) | set(DISTORTION_KEYS) | {"k3", "k4", "readout_time"}
-    unknown = sorted(set(raw) - allowed)
-    if unknown:
-        raise RigFormatError(file, f"{where}.{unknown[0]}", f"unknown key for a {stype}")
+    _require(raw, ["T_ref_sensor"], file, f"{where}.", allowed=allowed, unknown=f"unknown key for a {stype}")
     spec = SensorSpec(
         name=name,
         type=stype,
@@ -243,10 +244,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
     raw = read_json(file)
     if not isinstance(raw, dict):
         raise RigFormatError(file, "(top level)", "must be a JSON object")
-    _require(raw, TOP_KEYS, file)
-    unknown = sorted(set(raw) - set(TOP_KEYS) - {"comment", "metadata", "trajectory_accuracy"})
-    if unknown:
-        raise RigFormatError(file, unknown[0], "unknown key")
+    _require(raw, TOP_KEYS, file, allowed=TOP_KEYS + ("comment", "metadata", "trajectory_accuracy"))
     if raw["format"] != FORMAT:
         raise RigFormatError(file, "format", f"expected {FORMAT!r}, got {raw['format']!r}")
     if not isinstance(raw["sensors"], dict) or not raw["sensors"]:
@@ -269,10 +267,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
         where = f"frames[{i}]"
         if not isinstance(fr, dict):
             raise RigFormatError(file, where, "must be an object")
-        _require(fr, ("sensor", "timestamp", "file_path"), file, f"{where}.")
-        unknown = sorted(set(fr) - {"sensor", "timestamp", "file_path"})
-        if unknown:
-            raise RigFormatError(file, f"{where}.{unknown[0]}", "unknown key")
+        _require(fr, ("sensor", "timestamp", "file_path"), file, f"{where}.", allowed=("sensor", "timestamp", "file_path"))
         if not isinstance(fr["sensor"], str) or fr["sensor"] not in sensors:
             raise RigFormatError(file, f"{where}.sensor", f"unknown sensor {fr['sensor']!r}")
         stamp = _number(fr["timestamp"], file, f"{where}.timestamp")
