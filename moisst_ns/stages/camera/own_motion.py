@@ -38,8 +38,7 @@ from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
 @dataclass
 class DeltaGridConfig:
-    """What a camera's fits by its own motion (on the map, ``OwnMotionConfig``; against the trajectory alone,
-    ``own_tracks.OwnTracksConfig``) share: the coarse starts over delta and the held-back share."""
+    """The settings a camera's fits by its own motion share (``OwnMotionConfig``, ``own_tracks.OwnTracksConfig``)."""
 
     max_time_offset: float = 0.2
     """The coarse starts span the prior's delta +- this, seconds."""
@@ -48,8 +47,7 @@ class DeltaGridConfig:
     coarse_matches: int = 4000
     """The starts' solves use every k-th match, at most this many."""
     hold_out: int = 5
-    """Every ``hold_out``-th frame's matches (on the map) or track (own tracks) is held back from the fit for its
-    held-back loss."""
+    """Every ``hold_out``-th frame's matches (own tracks: track) are held back from the fit for its held-back loss."""
 
     def starts(self) -> List[np.ndarray]:
         """The coarse starts' corrections: zero but for delta, on the grid."""
