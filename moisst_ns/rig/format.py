@@ -189,12 +189,8 @@ def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise RigFormatError(file, f"{where}.{key}", f"must be a positive integer, got {value!r}")
             intr[key] = value
-        for key in ("fl_x", "fl_y"):
-            intr[key] = _number(raw[key], file, f"{where}.{key}", positive=True)
-        for key in ("cx", "cy"):
-            intr[key] = _number(raw[key], file, f"{where}.{key}")
-        for key in DISTORTION_KEYS + ("k3", "k4"):
-            intr[key] = _number(raw.get(key, 0.0), file, f"{where}.{key}")
+        for key in ("fl_x", "fl_y", "cx", "cy") + DISTORTION_KEYS + ("k3", "k4"):  # the focal lengths > 0, no distortion by default
+            intr[key] = _number(raw.get(key, 0.0), file, f"{where}.{key}", positive=key in ("fl_x", "fl_y"))
         if model == "PINHOLE" and any(intr[k] != 0.0 for k in DISTORTION_KEYS + ("k3", "k4")):
             raise RigFormatError(file, f"{where}.camera_model", "PINHOLE cameras take no distortion; use OPENCV")
         spec.readout_time = _number(raw.get("readout_time", 0.0), file, f"{where}.readout_time")
