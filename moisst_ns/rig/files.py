@@ -65,9 +65,7 @@ def load_tum(path: Path) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def write_tum(path: Path, stamps, positions, quats_xyzw, header: str = "timestamp tx ty tz qx qy qz qw") -> None:
     """Write a TUM trajectory (full float precision)."""
-    lines = [f"# {header}"]
-    for s, p, q in zip(stamps, positions, quats_xyzw):
-        lines.append(" ".join(repr(float(v)) for v in (s, *p, *q)))
+    lines = [f"# {header}"] + [" ".join(repr(float(v)) for v in (s, *p, *q)) for s, p, q in zip(stamps, positions, quats_xyzw)]
     Path(path).write_text("\n".join(lines) + "\n")
 
 

@@ -127,6 +127,17 @@ def _number(value, file, fieldname, positive=False) -> float:
     return float(value)
 
 
+def _require(raw: dict, keys, file, where: str = "", problem: str = "missing", allowed=None, unknown: str = "unknown key") -> None:
+    """``RigFormatError`` naming the first of ``keys`` that ``raw`` lacks, then (with ``allowed``) the first of its keys
+    not in ``allowed`` (the field ``where`` + the key)."""
+    for key in keys:
+        if key not in raw:
+            raise RigFormatError(file, f"{where}{key}", problem)
+    extra = sorted(set(raw) - set(allowed)) if allowed is not None else []
+    if extra:
+        raise RigFormatError(file, f"{where}{extra[0]}", unknown)
+
+
 def check_name(name: str, file, fieldname: str) -> str:
     """Sensor names become folder and metric names: refuse anything that could act as a path."""
     if (
@@ -157,14 +168,10 @@ def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
     stype = raw.get("type")
     if stype not in SENSOR_TYPES:
         raise RigFormatError(file, f"{where}.type", f"must be one of {SENSOR_TYPES}, got {stype!r}")
-    if "T_ref_sensor" not in raw:
-        raise RigFormatError(file, f"{where}.T_ref_sensor", "missing")
     allowed = {"type", "T_ref_sensor", "time_offset"}
     if stype == "camera":
         allowed |= set(CAMERA_KEYS) | set(DISTORTION_KEYS) | {"k3", "k4", "readout_time"}
-    unknown = sorted(set(raw) - allowed)
-    if unknown:
-        raise RigFormatError(file, f"{where}.{unknown[0]}", f"unknown key for a {stype}")
+    _require(raw, ["T_ref_sensor"], file, f"{where}.", allowed=allowed, unknown=f"unknown key for a {stype}")
     spec = SensorSpec(
         name=name,
         type=stype,
@@ -172,9 +179,7 @@ def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
         time_offset=_number(raw.get("time_offset", 0.0), file, f"{where}.time_offset"),
     )
     if stype == "camera":
-        for key in CAMERA_KEYS:
-            if key not in raw:
-                raise RigFormatError(file, f"{where}.{key}", "missing (required for a camera)")
+        _require(raw, CAMERA_KEYS, file, f"{where}.", "missing (required for a camera)")
         model = raw["camera_model"]
         if model not in CAMERA_MODELS:
             raise RigFormatError(file, f"{where}.camera_model", f"unsupported camera model {model!r}; supported: {', '.join(CAMERA_MODELS)}")
@@ -184,12 +189,8 @@ def _parse_sensor(name: str, raw, file: Path) -> SensorSpec:
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise RigFormatError(file, f"{where}.{key}", f"must be a positive integer, got {value!r}")
             intr[key] = value
-        for key in ("fl_x", "fl_y"):
-            intr[key] = _number(raw[key], file, f"{where}.{key}", positive=True)
-        for key in ("cx", "cy"):
-            intr[key] = _number(raw[key], file, f"{where}.{key}")
-        for key in DISTORTION_KEYS + ("k3", "k4"):
-            intr[key] = _number(raw.get(key, 0.0), file, f"{where}.{key}")
+        for key in ("fl_x", "fl_y", "cx", "cy") + DISTORTION_KEYS + ("k3", "k4"):  # the focal lengths > 0, no distortion by default
+            intr[key] = _number(raw.get(key, 0.0), file, f"{where}.{key}", positive=key in ("fl_x", "fl_y"))
         if model == "PINHOLE" and any(intr[k] != 0.0 for k in DISTORTION_KEYS + ("k3", "k4")):
             raise RigFormatError(file, f"{where}.camera_model", "PINHOLE cameras take no distortion; use OPENCV")
         spec.readout_time = _number(raw.get("readout_time", 0.0), file, f"{where}.readout_time")
@@ -239,12 +240,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
     raw = read_json(file)
     if not isinstance(raw, dict):
         raise RigFormatError(file, "(top level)", "must be a JSON object")
-    for key in TOP_KEYS:
-        if key not in raw:
-            raise RigFormatError(file, key, "missing")
-    unknown = sorted(set(raw) - set(TOP_KEYS) - {"comment", "metadata", "trajectory_accuracy"})
-    if unknown:
-        raise RigFormatError(file, unknown[0], "unknown key")
+    _require(raw, TOP_KEYS, file, allowed=TOP_KEYS + ("comment", "metadata", "trajectory_accuracy"))
     if raw["format"] != FORMAT:
         raise RigFormatError(file, "format", f"expected {FORMAT!r}, got {raw['format']!r}")
     if not isinstance(raw["sensors"], dict) or not raw["sensors"]:
@@ -267,12 +263,7 @@ def load_rig(dataset: Path | str, check_files: bool = True) -> Rig:
         where = f"frames[{i}]"
         if not isinstance(fr, dict):
             raise RigFormatError(file, where, "must be an object")
-        for key in ("sensor", "timestamp", "file_path"):
-            if key not in fr:
-                raise RigFormatError(file, f"{where}.{key}", "missing")
-        unknown = sorted(set(fr) - {"sensor", "timestamp", "file_path"})
-        if unknown:
-            raise RigFormatError(file, f"{where}.{unknown[0]}", "unknown key")
+        _require(fr, ("sensor", "timestamp", "file_path"), file, f"{where}.", allowed=("sensor", "timestamp", "file_path"))
         if not isinstance(fr["sensor"], str) or fr["sensor"] not in sensors:
             raise RigFormatError(file, f"{where}.sensor", f"unknown sensor {fr['sensor']!r}")
         stamp = _number(fr["timestamp"], file, f"{where}.timestamp")
@@ -378,9 +369,7 @@ def load_calibration(path: Path | str) -> Calibration:
     raw = read_json(file)
     if not isinstance(raw, dict):
         raise RigFormatError(file, "(top level)", "must be a JSON object")
-    for key in ("reference_sensor", "sensors"):
-        if key not in raw:
-            raise RigFormatError(file, key, "missing")
+    _require(raw, ("reference_sensor", "sensors"), file)
     if not isinstance(raw["sensors"], dict) or not isinstance(raw["reference_sensor"], str) or raw["reference_sensor"] not in raw["sensors"]:
         raise RigFormatError(file, "reference_sensor", f"{raw['reference_sensor']!r} is not in sensors")
     transforms, offsets, trust = {}, {}, {}

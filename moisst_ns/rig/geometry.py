@@ -52,7 +52,7 @@ class ReferenceTrajectory:
     t0: float = 0.0
     """Absolute time (seconds, reference clock) that ``times`` are relative to."""
     _steps: Optional[Float[Tensor, "segments 3"]] = field(default=None, init=False, repr=False, compare=False)
-    """``Log(R_k^T R_{k+1})`` per segment, radians (computed on the first cached call)."""
+    """``Log(R_k^T R_{k+1})`` per segment, radians (computed on the first call)."""
 
     @classmethod
     def from_tum(cls, stamps, positions, quats_xyzw, t0: float | None = None) -> "ReferenceTrajectory":
@@ -82,11 +82,9 @@ class ReferenceTrajectory:
         """The trajectory of a loaded ``rig.format.Rig`` (its TUM file's columns), ``t0`` its first stamp."""
         return cls.from_tum(rig.trajectory_stamps, rig.trajectory_positions, rig.trajectory_quats_xyzw)
 
-    def __call__(self, t: Float[Tensor, "*batch"], cached: bool = False) -> Float[Tensor, "*batch 4 4"]:
-        """``T_r(t)``, paper eq. 1 (see ``interpolate_trajectory``); ``cached``: with each segment's relative rotation
-        computed once for the trajectory (``steps``: faster for many query times, the same formula)."""
-        if not cached:
-            return interpolate_trajectory(self.times, self.rotations, self.translations, t)
+    def __call__(self, t: Float[Tensor, "*batch"]) -> Float[Tensor, "*batch 4 4"]:
+        """``T_r(t)``, paper eq. 1 (see ``interpolate_trajectory``), each segment's relative rotation computed once for
+        the trajectory (``steps``: the same formula and values as per query time, faster for many)."""
         return interpolate_trajectory(self.times, self.rotations, self.translations, t, self.steps())
 
     def steps(self) -> Float[Tensor, "segments 3"]:
@@ -115,12 +113,11 @@ class ReferenceTrajectory:
         Returns:
             (``world_R_ref`` (num, 3, 3), ``world_t_ref`` (num, 3) metres, body angular rate rad/s, velocity m/s).
         """
-        times, rotations, translations, steps = self.times.numpy(), self.rotations.numpy(), self.translations.numpy(), self.steps().numpy()
+        rotations, translations = self.rotations.numpy(), self.translations.numpy()
         seg, alpha = self._segments(t)
-        span = (times[seg + 1] - times[seg])[:, None]
-        rot = rotations[seg] @ roma.rotvec_to_rotmat(torch.from_numpy(alpha[:, None] * steps[seg])).numpy()
-        delta_p = translations[seg + 1] - translations[seg]
-        return rot, translations[seg] + alpha[:, None] * delta_p, steps[seg] / span, delta_p / span
+        rot = rotations[seg] @ roma.rotvec_to_rotmat(torch.from_numpy(alpha[:, None] * self.steps().numpy()[seg])).numpy()
+        omega, velocity = self.rates(torch.from_numpy(np.asarray(t, dtype=np.float64)))
+        return rot, translations[seg] + alpha[:, None] * (translations[seg + 1] - translations[seg]), omega.numpy(), velocity.numpy()
 
     def _segments(self, t: Float[np.ndarray, "num"]) -> Tuple[Int[np.ndarray, "num"], Float[np.ndarray, "num"]]:
         """Each time's segment ``k`` and ``a = (t - t_k) / (t_{k+1} - t_k)`` (eq. 1; the end segments extrapolate)."""
@@ -232,7 +229,7 @@ projection moves during one readout (under 0.1 for tens of ms on a vehicle): thr
 
 
 def row_times(rows_at: Callable[[Float[Tensor, "*batch"]], Float[Tensor, "*batch"]], readout: float | Float[Tensor, "*batch"],
-              height: int, iterations: int = ROW_ITERATIONS) -> Float[Tensor, "*batch"]:
+              height: int) -> Float[Tensor, "*batch"]:
     """The capture time of points seen by a rolling-shutter camera: ``tau = row_time(rows_at(tau))``.
 
     A point's row depends on the pose it is projected from, which depends on the row's time: the fixed point is found
@@ -243,13 +240,12 @@ def row_times(rows_at: Callable[[Float[Tensor, "*batch"]], Float[Tensor, "*batch
             the camera's pose at ``stamp + tau`` (``tau`` seconds; called with the scalar ``0.0`` first).
         readout: the camera's readout time, seconds.
         height: the image's height, pixels.
-        iterations: projections (at least 1).
 
     Returns:
         ``tau`` per point, seconds from the stamp (the last iterate).
     """
     tau = row_time(rows_at(0.0), readout, height)
-    for _ in range(iterations - 1):
+    for _ in range(ROW_ITERATIONS - 1):
         tau = row_time(rows_at(tau), readout, height)
     return tau
 

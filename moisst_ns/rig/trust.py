@@ -212,16 +212,8 @@ def sigma_units(difference: List[float], *trusts: Optional[SensorTrust]) -> List
     Returns:
         7 ratios (or None).
     """
-    variances = [0.0] * 7
-    known = False
-    for trust in trusts:
-        sig = trust.sigmas() if trust is not None else None
-        if sig is None:
-            continue
-        known = True
-        for k, s in enumerate(sig):
-            s = math.radians(s) if 3 <= k < 6 else s
-            variances[k] += s * s
+    known = [[math.radians(s) if 3 <= k < 6 else s for k, s in enumerate(t.sigmas())] for t in trusts if t is not None and t.sigmas() is not None]
     if not known:
         return [None] * 7
+    variances = [sum(sig[k] * sig[k] for sig in known) for k in range(7)]
     return [abs(d) / math.sqrt(v) if v > 0 and math.isfinite(v) else None for d, v in zip(difference, variances)]

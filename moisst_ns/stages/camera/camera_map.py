@@ -21,11 +21,11 @@ from typing import Callable, List, Sequence, Tuple
 import numpy as np
 import open3d as o3d
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, UInt8
 
 from moisst_ns.rig.format import Calibration, Rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
-from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, PinholeModel, project
+from moisst_ns.stages.camera.lidar_map import CameraStageError, NoMapError, PinholeModel, project, read_grey
 
 
 @dataclass
@@ -111,24 +111,23 @@ def triangulate(proj_a: Float[np.ndarray, "n 3 4"], proj_b: Float[np.ndarray, "n
     return hom[:, :3] / np.where(np.abs(hom[:, 3:]) > 1e-12, hom[:, 3:], np.nan)
 
 
+def sift(image: UInt8[np.ndarray, "h w"], features: int) -> Tuple[Float[np.ndarray, "k 2"], np.ndarray]:
+    """SIFT keypoints of an 8-bit grey image (OpenCV pixel convention, centre of column ``i`` at ``i``) and their
+    descriptors ((0, 128) when there are none)."""
+    import cv2
+
+    kp, desc = cv2.SIFT_create(nfeatures=features).detectAndCompute(image, None)
+    return np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2), desc if desc is not None else np.zeros((0, 128), np.float32)
+
+
 def sift_frames(rig: Rig, frames: Sequence, features: int) -> Tuple[List[np.ndarray], List[np.ndarray]]:
-    """SIFT keypoints (OpenCV pixel convention, centre of column ``i`` at ``i``) and descriptors of each frame's grey image.
+    """``sift`` of each frame's grey image (``lidar_map.read_grey``): keypoints and descriptors.
 
     Raises:
         CameraStageError: an image cannot be read.
     """
-    import cv2
-
-    sift = cv2.SIFT_create(nfeatures=features)
-    keys, descs = [], []
-    for frame in frames:
-        image = cv2.imread(str(rig.root / frame.file_path), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise CameraStageError(f"{rig.root / frame.file_path}: file_path: missing or not an image")
-        kp, desc = sift.detectAndCompute(image, None)
-        keys.append(np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2))
-        descs.append(desc if desc is not None else np.zeros((0, 128), np.float32))
-    return keys, descs
+    found = [sift(read_grey(rig, frame.sensor, frame.file_path), features) for frame in frames]
+    return [k for k, _ in found], [d for _, d in found]
 
 
 def ratio_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> Tuple[np.ndarray, np.ndarray]:

@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, row_time
 from moisst_ns.stages.camera.camera_guards import SCALE
-from moisst_ns.stages.camera.camera_map import camera_matrix, distortion, ratio_matches
+from moisst_ns.stages.camera.camera_map import camera_matrix, distortion, ratio_matches, sift
 from moisst_ns.stages.camera.lidar_map import PinholeModel, project, visible, world_to_camera
 from moisst_ns.stages.camera.photometric import CameraFrames, CameraModel
 
@@ -76,12 +76,11 @@ def _grey(image: np.ndarray) -> np.ndarray:
     return np.clip((image - lo) / max(hi - lo, 1e-6) * 255.0, 0, 255).astype(np.uint8)
 
 
-def _sift(image: np.ndarray, features: int) -> Tuple[np.ndarray, Optional[np.ndarray]]:
-    """SIFT keypoints ``(u, v)`` in the rig's pixel convention (centre of column ``i`` at ``i + 0.5``) and descriptors."""
-    import cv2
-
-    keypoints, descriptors = cv2.SIFT_create(nfeatures=features).detectAndCompute(_grey(image), None)
-    return np.array([k.pt for k in keypoints], dtype=np.float64).reshape(-1, 2) + 0.5, descriptors
+def _sift(image: np.ndarray, features: int) -> Tuple[np.ndarray, np.ndarray]:
+    """``camera_map.sift`` of a standardised image (``_grey``), the keypoints ``(u, v)`` in the rig's pixel convention
+    (centre of column ``i`` at ``i + 0.5``)."""
+    keypoints, descriptors = sift(_grey(image), features)
+    return keypoints + 0.5, descriptors
 
 
 def reference_landmarks(world: Float[np.ndarray, "num 3"], pose: Float[np.ndarray, "4 4"], image: np.ndarray, model: PinholeModel,
@@ -105,7 +104,7 @@ def reference_landmarks(world: Float[np.ndarray, "num 3"], pose: Float[np.ndarra
         descriptors), both empty when none lands on the map.
     """
     uv_kp, descriptors = _sift(image, features)
-    if descriptors is None or not len(uv_kp):
+    if not len(uv_kp):
         return np.zeros((0, 3)), None
     if projected is None:
         pose_t = torch.from_numpy(np.asarray(pose, dtype=np.float64))[None].expand(len(world), 4, 4)
@@ -170,7 +169,7 @@ def feature_start(traj: ReferenceTrajectory, world: Float[np.ndarray, "num 3"], 
         near = [j for j in range(len(ref_poses)) if abs(reference.stamps[j] + reference_offset - camera.stamps[i] - prior_offset) <= config.window_s
                 and landmarks[j][1] is not None and len(landmarks[j][0])]
         uv_kp, descriptors = _sift(image, config.features)
-        if not near or descriptors is None or len(uv_kp) < 4:
+        if not near or len(uv_kp) < 4:
             continue
         for j in near:  # the ratio test within one reference frame: the same point in two frames is no ambiguity
             query, train = ratio_matches(descriptors, landmarks[j][1], config.ratio)

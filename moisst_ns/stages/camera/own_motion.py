@@ -37,7 +37,26 @@ from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
 
 @dataclass
-class OwnMotionConfig:
+class DeltaGridConfig:
+    """The settings a camera's fits by its own motion share (``OwnMotionConfig``, ``own_tracks.OwnTracksConfig``)."""
+
+    max_time_offset: float = 0.2
+    """The coarse starts span the prior's delta +- this, seconds."""
+    time_grid: float = 0.05
+    """Spacing of the coarse starts' delta grid, seconds."""
+    coarse_matches: int = 4000
+    """The starts' solves use every k-th match, at most this many."""
+    hold_out: int = 5
+    """Every ``hold_out``-th frame's matches (own tracks: track) are held back from the fit for its held-back loss."""
+
+    def starts(self) -> List[np.ndarray]:
+        """The coarse starts' corrections: zero but for delta, on the grid."""
+        steps = int(round(self.max_time_offset / self.time_grid))
+        return [np.r_[np.zeros(6), k * self.time_grid] for k in range(-steps, steps + 1)]
+
+
+@dataclass
+class OwnMotionConfig(DeltaGridConfig):
     """Settings of a camera's own-motion fit against the map."""
 
     features: int = 2000
@@ -52,24 +71,16 @@ class OwnMotionConfig:
     """Least angle between a match's two viewing rays, degrees."""
     coarse_radii: Tuple[float, ...] = (2.0, 1.0, 0.5)
     """Search radii of the nearest map point from every start, metres (one solve each)."""
-    coarse_matches: int = 4000
-    """The starts' solves use every k-th match, at most this many."""
     fine_radius: float = 0.12
     """Search radius of the fine solves from the kept start, metres."""
     fine_iterations: int = 8
     """At most this many fine solves; they stop once one moves the cloud by less than ``stop_m``."""
     stop_m: float = 0.001
     """RMS move of the cloud that ends the fine solves, metres."""
-    time_grid: float = 0.05
-    """Spacing of the starts' delta grid, seconds."""
-    max_time_offset: float = 0.2
-    """The grid spans the prior's delta +- this, seconds."""
     normal_radius: float = 0.25
     """Radius of the map's normal estimate, metres."""
     min_points: int = 1000
     """Fewer matches than this on the map at the fine radius: the camera is not placed."""
-    hold_out: int = 5
-    """Every ``hold_out``-th frame's matches are held back from the fit for its held-back loss."""
 
 
 @dataclass
@@ -267,12 +278,11 @@ def fit_own_motion(traj: ReferenceTrajectory, matches: OwnMatches, surface: MapS
     args = (traj, prior, prior_offset)
     if start is None:
         best, coarse = None, fit.subset(slice(None, None, max(1, len(fit.frame_a) // config.coarse_matches)))
-        steps = int(round(config.max_time_offset / config.time_grid))
-        for k in range(-steps, steps + 1):
-            theta = np.r_[np.zeros(6), k * config.time_grid]
+        for theta in config.starts():
+            delta = theta[6]
             for radius in config.coarse_radii:
                 theta, kept, _ = _solve(theta, coarse, surface, radius, config.min_parallax_deg, *args)
-            log(f"[own-motion] {sensor}: start at delta {k * config.time_grid * 1000:+.0f} ms from the prior: {len(kept)} of {len(coarse.frame_a)} matches "
+            log(f"[own-motion] {sensor}: start at delta {delta * 1000:+.0f} ms from the prior: {len(kept)} of {len(coarse.frame_a)} matches "
                 f"within {config.coarse_radii[-1]:g} m of the map")
             if best is None or len(kept) > len(best[1]):
                 best = (theta, kept)

@@ -32,27 +32,19 @@ from scipy.sparse.csgraph import connected_components
 
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.stages.camera.camera_guards import SCALE
-from moisst_ns.stages.camera.own_motion import OwnMatches, OwnMotionFit, observation_poses
+from moisst_ns.stages.camera.own_motion import DeltaGridConfig, OwnMatches, OwnMotionFit, observation_poses
 from moisst_ns.stages.trust.drive_observability import analyse_drive
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
 
 @dataclass
-class OwnTracksConfig:
-    """Settings of a camera's fit against the reference trajectory alone."""
+class OwnTracksConfig(DeltaGridConfig):
+    """Settings of a camera's fit against the reference trajectory alone (the coarse starts' solves are epipolar)."""
 
-    max_time_offset: float = 0.2
-    """The coarse starts span the prior's delta +- this, seconds."""
-    time_grid: float = 0.05
-    """Spacing of the coarse starts' delta grid, seconds."""
-    coarse_matches: int = 4000
-    """The starts' epipolar solves use every k-th match, at most this many."""
     thresholds_px: Tuple[float, ...] = (8.0, 4.0, 2.0, 2.0)
     """One track solve per threshold: tracks with a view farther than it from its point are left out, pixels."""
     min_tracks: int = 100
     """Fewer tracks of at least 3 views kept at the last threshold: the camera is not placed."""
-    hold_out: int = 5
-    """Every ``hold_out``-th track is held back from the fit for its held-back loss."""
     short_span: int = 3
     """The baseline part of sigma: the tracks spanning at most this many frames and the longer ones, each fitted alone;
     the farther of the two from the whole (a bias of the long baselines' far points, which the formal part and the
@@ -180,9 +172,8 @@ def fit_own_tracks(traj: ReferenceTrajectory, matches: OwnMatches, focal: float,
     fit, back = every.subset(~held), every.subset(held)
     if start is None:
         coarse, best = matches.subset(slice(None, None, max(1, len(matches.frame_a) // config.coarse_matches))), None
-        steps = int(round(config.max_time_offset / config.time_grid))
-        for k in range(-steps, steps + 1):
-            solution = _solve(lambda x: sampson_px(x, coarse, focal, *args), np.r_[np.zeros(6), k * config.time_grid])
+        for theta in config.starts():
+            solution = _solve(lambda x: sampson_px(x, coarse, focal, *args), theta)
             if best is None or solution.cost < best.cost:
                 best = solution
         log(f"[own-tracks] {sensor}: epipolar start at delta {best.x[6] * 1000:+.1f} ms from the prior, median {np.median(np.abs(best.fun)):.3f} px")

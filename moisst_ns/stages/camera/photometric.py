@@ -74,7 +74,7 @@ class CameraModel:
         camera-frame point, ref_T_c)`` (reference-clock time, eq. 1-2 and 12 per point)."""
         ext = calibrated_extrinsic(self.prior, theta[:3], theta[3:6])
         t = self.stamps[frame] + self.prior_offset + theta[6] + tau
-        ref = self.traj(t, cached=True)
+        ref = self.traj(t)
         q = world_to_camera(ref, points)
         return t, ref, q, (q - ext[:3, 3]) @ ext[:3, :3], ext
 
@@ -231,7 +231,7 @@ class Registration:
         travelled = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))]
         stack = cam.levels[factor]
         baseline = c.fine_baseline if c.fine_baseline > 0 and factor == min(cam.levels) else c.own_baseline
-        rows = {"points": [], "frame_a": [], "own": [], "frame_b": [], "value_b": []}
+        rows = []  # (map points, frame_a, own, frame_b, value_b) of each block of pairs
         drawn = []  # per frame: its sampled points and which of them found a reference partner
         for k in range(len(cam.stamps)):
             candidates = np.flatnonzero(seen_by[k])
@@ -256,9 +256,7 @@ class Registration:
                 uvb, _ = self.ref_model.pixels(np.zeros(7), ref_stack.model, self.world[chosen[seen]], np.full(int(seen.sum()), j), False)
                 value, _, okb = bilinear(ref_stack, np.full(int(seen.sum()), j), uvb)
                 hit = np.flatnonzero(seen)[okb]
-                for key, val in (("points", chosen[hit]), ("frame_a", np.full(len(hit), k)), ("own", np.zeros(len(hit), bool)),
-                                 ("frame_b", np.full(len(hit), j)), ("value_b", value[okb])):
-                    rows[key].append(val)
+                rows.append((chosen[hit], np.full(len(hit), k), np.zeros(len(hit), bool), np.full(len(hit), j), value[okb]))
                 pending[hit] = False
                 at_once += len(hit) if rank == 0 else 0
             drawn.append((k, chosen, (ref is not None) & ~pending, at_once))
@@ -271,13 +269,12 @@ class Registration:
                 if partner is None:
                     continue
                 seen = seen_by[partner, chosen] & unpaired
-                for key, val in (("points", chosen[seen]), ("frame_a", np.full(int(seen.sum()), k)), ("own", np.ones(int(seen.sum()), bool)),
-                                 ("frame_b", np.full(int(seen.sum()), partner)), ("value_b", np.zeros(int(seen.sum())))):
-                    rows[key].append(val)
-        if not rows["points"]:
+                n = int(seen.sum())
+                rows.append((chosen[seen], np.full(n, k), np.ones(n, bool), np.full(n, partner), np.zeros(n)))
+        if not rows:
             return PairSet(np.zeros((0, 3)), *(np.zeros(0, dtype=t) for t in (np.int64, bool, np.int64, np.float64)))
-        cat = {k: np.concatenate(v) for k, v in rows.items()}
-        return PairSet(self.world[cat["points"]], cat["frame_a"], cat["own"], cat["frame_b"], cat["value_b"], share)
+        points, frame_a, own, frame_b, value_b = (np.concatenate(c) for c in zip(*rows))
+        return PairSet(self.world[points], frame_a, own, frame_b, value_b, share)
 
     def _partner(self, travelled: np.ndarray, k: int, direction: int, baseline: float) -> Optional[int]:
         far = np.flatnonzero(np.abs(travelled - travelled[k]) >= baseline)

@@ -356,8 +356,7 @@ def calibrate_lidars(rig: Rig, config: LidarFirstConfig, sensors: Optional[Seque
             raise LidarFirstError(f"{rig.root / 'rig.json'}: sensors.{name}: not a non-reference LiDAR of this rig (LiDARs: {available or 'none'})")
     if not names:
         raise LidarFirstError(f"{rig.root / 'rig.json'}: sensors: the rig has no LiDAR other than the reference sensor")
-    calibration = Calibration.from_rig(rig)
-    calibration.T_ref_sensor, calibration.time_offset = dict(calibration.T_ref_sensor), dict(calibration.time_offset)
+    calibration = Calibration.from_rig(rig)  # its own dicts: the rig's priors stay
     results = {name: calibrate_lidar(rig, name, config, log) for name in names}
     for name, result in results.items():
         calibration.T_ref_sensor[name], calibration.time_offset[name] = result.estimate.matrix(), result.estimate.time_offset

@@ -62,11 +62,8 @@ def stage_summary(result: LidarFirstResult, config: LidarFirstConfig, prior: Cal
 
 def observability_lines(result: LidarResult) -> List[str]:
     """One line per parameter: the RMS effect of a typical error, the formal sigma and the verdict."""
-    lines = []
-    for d, (scale, unit) in zip(result.observability.dofs, UNITS):
-        verdict = f"WEAK: {d.reason}" if d.weak else "constrained"
-        lines.append(f"  {d.name:<12} effect {1000 * d.effect_m:7.2f} mm   sigma {scale * d.sigma:9.4f} {unit:<3}  {verdict}")
-    return lines
+    return [f"  {d.name:<12} effect {1000 * d.effect_m:7.2f} mm   sigma {scale * d.sigma:9.4f} {unit:<3}  {f'WEAK: {d.reason}' if d.weak else 'constrained'}"
+            for d, (scale, unit) in zip(result.observability.dofs, UNITS)]
 
 
 def write_stage_files(out: Path, calibration: Calibration, summary: dict, md: List[str], report_json: str, report_md: str) -> None:

@@ -6,6 +6,7 @@ placement, ``lidar_geometry``). The fit that uses them is ``lidar_first``. No ne
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import count, product, takewhile
 from typing import Callable, List, Tuple
 
 import numpy as np
@@ -189,21 +190,13 @@ def scan_pairs(traj: ReferenceTrajectory, scans: ScanSet, prior_offset: float, c
     each pair's baseline (metres of the reference trajectory between the two scans' stamps)."""
     _, pos, _, _ = traj.pose_and_rates(scans.stamps + prior_offset)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
-    targets = []
-    b = config.min_baseline
-    while b <= config.max_baseline:
-        targets.append(b)
-        b *= 2
-    pairs = set()
+    targets = list(takewhile(lambda dist: dist <= config.max_baseline, (config.min_baseline * 2**k for k in count())))
     num = len(scans.stamps)
-    for a in range(num):
-        for gap in (1, 2):
-            if a + gap < num:
-                pairs.add((a, a + gap))
-        for dist in targets:
-            b = int(np.searchsorted(arc, arc[a] + dist))
-            if b < num and arc[b] - arc[a] <= config.max_baseline:
-                pairs.add((a, b))
+    pairs = {(a, a + gap) for a in range(num) for gap in (1, 2) if a + gap < num}
+    for a, dist in product(range(num), targets):
+        b = int(np.searchsorted(arc, arc[a] + dist))
+        if b < num and arc[b] - arc[a] <= config.max_baseline:
+            pairs.add((a, b))
     pairs_arr = np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2)
     return pairs_arr, arc[pairs_arr[:, 1]] - arc[pairs_arr[:, 0]]
 

@@ -9,6 +9,7 @@ has the models, the rules and the measurements. Pure numpy/torch/roma: nothing h
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import takewhile
 from typing import Dict, List, Literal
 
 import numpy as np
@@ -109,25 +110,16 @@ def frame_pairs(times: Float[np.ndarray, "num"], max_lag_s: float) -> np.ndarray
         (P, 2) int array.
     """
     order = np.argsort(times)
-    out = []
-    for a in range(len(order)):
-        for b in range(a + 1, len(order)):
-            if b > a + 1 and abs(times[order[b]] - times[order[a]]) > max_lag_s:
-                break
-            out.append((order[a], order[b]))
+    out = [(order[a], order[b]) for a in range(len(order))
+           for b in takewhile(lambda b: b == a + 1 or abs(times[order[b]] - times[order[a]]) <= max_lag_s, range(a + 1, len(order)))]
     return np.asarray(out, dtype=np.int64).reshape(-1, 2)
 
 
 def pose_jacobian(traj: ReferenceTrajectory, times, extrinsic, model: str, pairs, scene_depth_m: float) -> Float[np.ndarray, "num_residuals 7"]:
     """Central finite-difference Jacobian of ``pose_residuals`` at zero change (metres per m / rad / s)."""
-    cols = []
-    for i, h in enumerate(FD_STEPS):
-        step = np.zeros(7)
-        step[i] = h
-        plus = pose_residuals(traj, times, extrinsic, step, model, pairs, scene_depth_m)
-        minus = pose_residuals(traj, times, extrinsic, -step, model, pairs, scene_depth_m)
-        cols.append((plus - minus) / (2 * h))
-    return np.stack(cols, axis=1)
+    return np.stack([(pose_residuals(traj, times, extrinsic, step, model, pairs, scene_depth_m)
+                      - pose_residuals(traj, times, extrinsic, -step, model, pairs, scene_depth_m)) / (2 * h)
+                     for step, h in zip(np.diag(FD_STEPS), FD_STEPS)], axis=1)
 
 
 def _partners(information: Float[np.ndarray, "7 7"], i: int) -> List[str]:
@@ -171,17 +163,6 @@ def weak_parameters(information: Float[np.ndarray, "7 7"]) -> set:
     return out
 
 
-def drive_excitation(traj: ReferenceTrajectory, times: Float[np.ndarray, "num"]) -> Dict[str, float]:
-    """``observability.excitation`` of the drive over ``times`` (reference-clock times since ``t0``, seconds), the
-    rates by central differences."""
-    t = torch.as_tensor(np.sort(times), dtype=torch.float64)
-    h = 1e-3
-    poses, ahead, back = traj(t), traj(t + h), traj(t - h)
-    vel = (ahead[:, :3, 3] - back[:, :3, 3]) / (2 * h)
-    rate = roma.rotmat_to_rotvec(back[:, :3, :3].transpose(-1, -2) @ ahead[:, :3, :3]) / (2 * h)
-    return excitation(poses[:, :3, :3].numpy(), poses[:, :3, 3].numpy(), rate.numpy(), vel.numpy())
-
-
 def analyse_drive(
     traj: ReferenceTrajectory, times: Float[np.ndarray, "num"], extrinsic: Float[np.ndarray, "4 4"], sensor: str,
     model: Literal["absolute", "relative"],
@@ -203,7 +184,7 @@ def analyse_drive(
     jac = pose_jacobian(traj, times, extrinsic, model, pairs, SCENE_DEPTH_M)
     information = jac.T @ jac / max(len(jac) // 6, 1)  # per pose: RMS over poses
     marginal = marginal_information(information)
-    exc = drive_excitation(traj, times)
+    exc = excitation(*traj.pose_and_rates(np.sort(times)))  # what the drive does over the frames (the reasons)
     out = DriveObservability(sensor, model)
     weak_set = weak_parameters(information)
     for i, (name, step) in enumerate(zip(PARAMETERS, TEST_STEPS)):
@@ -255,11 +236,7 @@ def drive_table(results: List[DriveObservability]) -> List[str]:
     for r in results:
         cells = [f"{1000 * d.effect_m:7.1f} {d.separability:4.2f}{'*' if d.weak else ' '}" for d in r.dofs]
         lines.append(f"{r.sensor:<12} {r.model:<9} " + " ".join(f"{c:>14}" for c in cells))
-    for r in results:
-        for d in r.dofs:
-            if d.weak:
-                lines.append(f"WARNING: {r.sensor}: {d.name} weakly observable from this drive: {d.reason}")
-    return lines
+    return lines + [f"WARNING: {r.sensor}: {d.name} weakly observable from this drive: {d.reason}" for r in results for d in r.dofs if d.weak]
 
 
 def drive_json(results: List[DriveObservability]) -> Dict[str, dict]:

@@ -26,7 +26,6 @@ class LeastSquaresSigma:
 
 def least_squares_sigma(
     jacobian: Float[np.ndarray, "n p"], residuals: Float[np.ndarray, "n"], clusters: Int[np.ndarray, "n"],
-    rcond: float = 1e-10,
 ) -> LeastSquaresSigma:
     """Classical and cluster-robust standard deviations at a least-squares solution.
 
@@ -34,7 +33,6 @@ def least_squares_sigma(
         jacobian: ``d r / d x`` (residual units per parameter unit).
         residuals: residuals at the solution.
         clusters: cluster label of every residual (residuals of one cluster may be correlated).
-        rcond: relative eigenvalue below which a direction of ``H`` counts as unconstrained (sigma inf).
 
     Returns:
         ``LeastSquaresSigma``.
@@ -44,7 +42,7 @@ def least_squares_sigma(
     n, p = jac.shape
     info = jac.T @ jac
     vals, vecs = np.linalg.eigh(info)
-    keep = vals > rcond * max(float(vals.max()), 1e-300)
+    keep = vals > 1e-10 * max(float(vals.max()), 1e-300)  # below: a direction H does not constrain (sigma inf)
     inv = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
     free = np.abs(vecs[:, ~keep]).max(axis=1) > 1e-6 if (~keep).any() else np.zeros(p, dtype=bool)
     s2 = float(res @ res) / max(n - p, 1)
