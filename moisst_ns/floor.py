@@ -21,7 +21,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from moisst_ns.calibrate import SceneRunConfig, rig_trainer_config
-from moisst_ns.stage_run import fixed_calibration_scene, map_range_settings, seed_everything
+from moisst_ns.stage_run import fixed_calibration_scene, map_range_settings, set_up_trainer
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
 
@@ -245,9 +245,7 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
     fixed_calibration_scene(config.pipeline)
     config.save_config()
 
-    seed_everything(cfg.seed)
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    trainer = set_up_trainer(config, cfg.seed)
     pipeline = trainer.pipeline
     optimizer = pipeline.model.camera_optimizer
     optimizer.set_trainable(False)  # held while the scene trains (released for the registration below)

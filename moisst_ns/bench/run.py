@@ -16,14 +16,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import List, Optional
 
 import numpy as np
 
 from moisst_ns.bench.speed import keep_speed_block, with_speed_table
 from moisst_ns.bench.scenarios import LOSS_SWITCHES, _seeds, load_scenarios, packaged_scenarios
 from moisst_ns.runs import ERROR_KEYS
-from moisst_ns.bench.tables import markdown, merge_frame_errors, plot_error_vs_time, pooled, stage_errors, time_to_target
+from moisst_ns.bench.tables import markdown, merge_frame_errors, plot_error_vs_time, pooled, sensor_means, stage_errors, time_to_target
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -215,13 +215,8 @@ def run_bench(cfg: BenchConfig) -> dict:
             docs.write_text(with_speed_table(docs.read_text() if docs.is_file() else "# Benchmarks\n", table))
         print(table)
         return result
-    if cfg.scenarios is not None:
-        path = cfg.scenarios
-    else:
-        path = packaged_scenarios("full" if cfg.full else "quick")
+    path = cfg.scenarios if cfg.scenarios is not None else packaged_scenarios("full" if cfg.full else "quick")
     raw = load_scenarios(path)
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
@@ -236,11 +231,7 @@ def run_bench(cfg: BenchConfig) -> dict:
             run.update(seed=seed, layout=layout)
             runs.append(run)
         ok = [r for r in runs if "history" in r]
-        before: Dict[str, dict] = {}
-        for r in ok:
-            for s, e in r["errors_before"].items():
-                before.setdefault(s, []).append(e)
-        before = {s: {k: float(np.mean([e[k] for e in es])) for k in ERROR_KEYS} for s, es in before.items()}
+        before = sensor_means(((s, e) for r in ok for s, e in r["errors_before"].items()), ERROR_KEYS)
         frame = {key: merge_frame_errors([r[key] for r in ok]) for key in ("frame_errors", "frame_errors_prior")}
         cases.append({"lidar_first": stage_errors(ok), "id": case["id"], "tables": case["tables"], "perturb": case["perturb"], "optimise": case.get("optimise", "both"),
                       "patch_size": case.get("patch_size"),
@@ -308,9 +299,9 @@ def run_bench(cfg: BenchConfig) -> dict:
     md = markdown(result)
     (out / "benchmarks.md").write_text(md)
     if cfg.docs:
-        (REPO / "docs").mkdir(exist_ok=True)
         docs = REPO / "docs" / "benchmarks.md"
-        (REPO / "docs" / "benchmarks.md").write_text(keep_speed_block(docs.read_text() if docs.is_file() else "", md))
+        docs.parent.mkdir(exist_ok=True)
+        docs.write_text(keep_speed_block(docs.read_text() if docs.is_file() else "", md))
         shutil.copyfile(out / "bench_error_vs_time.png", REPO / "docs" / "bench_error_vs_time.png")
     print(md)
     return result
