@@ -96,12 +96,9 @@ def calibrate_trainer_config(cfg: CalibrateConfig, root: Path, out: Path, steps:
     config = rig_trainer_config(cfg.method, steps, root, out, "run", cfg.seed)
     pipeline = config.pipeline
     model, datamanager = pipeline.model, pipeline.datamanager
-    if not cfg.depth_loss:
-        model.depth_loss_mult = 0.0
-    if not cfg.dssim_loss:
-        model.dssim_loss_mult = 0.0
-    if not cfg.depth_smoothness_loss:
-        model.depth_smoothness_mult = 0.0
+    for switch, weight in (("depth_loss", "depth_loss_mult"), ("dssim_loss", "dssim_loss_mult"), ("depth_smoothness_loss", "depth_smoothness_mult")):
+        if not getattr(cfg, switch):
+            setattr(model, weight, 0.0)  # the loss off
     if cfg.max_time_offset is not None:
         model.camera_optimizer.max_time_offset = cfg.max_time_offset
     if cfg.patch_size is not None:

@@ -107,11 +107,8 @@ def markdown(result: dict) -> str:
                 name, _, label = tag.partition(":")
                 if name != table:
                     continue
-                stats = case["pooled"]
-                before = case["before"]
-                for sensor in sorted(stats):
-                    s = stats[sensor]
-                    b = before.get(sensor, {})
+                for sensor, s in sorted(case["pooled"].items()):
+                    b = case["before"].get(sensor, {})
                     rows.append(f"| {label or case['id']} | {sensor} | {b.get('translation_cm', float('nan')):.1f} / "
                                 f"{b.get('rotation_deg', float('nan')):.2f} / {b.get('time_ms', float('nan')):.0f} | "
                                 f"{_cell(s.get('translation_cm'), 1)} | {_cell(s.get('rotation_deg'), 2)} | {_cell(s.get('time_ms'), 1)} | "
