@@ -15,7 +15,7 @@ import tyro
 
 from moisst_ns.runs import RunError
 from moisst_ns.runs.folder import check_output_dir
-from moisst_ns.stage_run import CalibrationError, CalibrationSwitches, seed_everything
+from moisst_ns.stage_run import CalibrationError, CalibrationSwitches, set_up_trainer
 
 
 @dataclass(kw_only=True)
@@ -72,17 +72,21 @@ class CalibrateConfig(CalibrationSwitches, SceneRunConfig):
     """Checkpoint every N steps and keep every checkpoint (default: the method's, latest only)."""
 
 
-def rig_trainer_config(method: str, steps: Optional[int], root: Path, out: Path, timestamp: str, seed: int):
-    """The ``TrainerConfig`` of ``method`` (``moisst`` / ``moisst-lite``) for ``steps`` (its default when None) on the
-    dataset ``root``, with nerfstudio's machine ``seed``, writing its run to ``out/<method>/<timestamp>``."""
-    from moisst_ns.method_configs import moisst_trainer_config
-
-    config = moisst_trainer_config(method, steps)
-    config.pipeline.datamanager.data = root
-    config.pipeline.datamanager.dataparser.data = root
+def place_run(config, root: Path, out: Path, timestamp: str, seed: int):
+    """``config`` (a ``TrainerConfig``, changed in place and returned) trained on the dataset ``root`` with
+    nerfstudio's machine ``seed``, writing its run to ``out/<method>/<timestamp>``."""
+    config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = root
     config.output_dir, config.experiment_name, config.timestamp = out, ".", timestamp
     config.machine.seed = seed
     return config
+
+
+def rig_trainer_config(method: str, steps: Optional[int], root: Path, out: Path, timestamp: str, seed: int):
+    """The ``TrainerConfig`` of ``method`` (``moisst`` / ``moisst-lite``) for ``steps`` (its default when None),
+    placed by ``place_run``."""
+    from moisst_ns.method_configs import moisst_trainer_config
+
+    return place_run(moisst_trainer_config(method, steps), root, out, timestamp, seed)
 
 
 def calibrate_trainer_config(cfg: CalibrateConfig, root: Path, out: Path, steps: Optional[int]):
@@ -92,12 +96,9 @@ def calibrate_trainer_config(cfg: CalibrateConfig, root: Path, out: Path, steps:
     config = rig_trainer_config(cfg.method, steps, root, out, "run", cfg.seed)
     pipeline = config.pipeline
     model, datamanager = pipeline.model, pipeline.datamanager
-    if not cfg.depth_loss:
-        model.depth_loss_mult = 0.0
-    if not cfg.dssim_loss:
-        model.dssim_loss_mult = 0.0
-    if not cfg.depth_smoothness_loss:
-        model.depth_smoothness_mult = 0.0
+    for switch, weight in (("depth_loss", "depth_loss_mult"), ("dssim_loss", "dssim_loss_mult"), ("depth_smoothness_loss", "depth_smoothness_mult")):
+        if not getattr(cfg, switch):
+            setattr(model, weight, 0.0)  # the loss off
     if cfg.max_time_offset is not None:
         model.camera_optimizer.max_time_offset = cfg.max_time_offset
     if cfg.patch_size is not None:
@@ -151,11 +152,8 @@ def run_calibration(cfg: CalibrateConfig) -> Path:
             raise CalibrationError(f"{checkpoints}: --resume: no checkpoint to resume from")
         config.load_dir = checkpoints
     config.save_config()
-    seed_everything(cfg.seed)
-    trainer = config.setup(local_rank=0, world_size=1)
     try:
-        trainer.setup()
-        trainer.train()
+        set_up_trainer(config, cfg.seed).train()
     except FloatingPointError as err:
         raise CalibrationError(str(err)) from None
     return config.get_base_dir() / "config.yml"

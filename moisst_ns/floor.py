@@ -21,7 +21,8 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from moisst_ns.calibrate import SceneRunConfig, rig_trainer_config
-from moisst_ns.stage_run import fixed_calibration_scene, map_range_settings, seed_everything
+from moisst_ns.stage_run import fixed_calibration_scene, map_range_settings, set_up_trainer
+from moisst_ns.runs import ERROR_KEYS, RunError
 from moisst_ns.runs.folder import check_output_dir
 from moisst_ns.runs.history import format_error_table
 
@@ -74,7 +75,7 @@ def floor_errors(rows: List[Dict[str, float]], average_last: int) -> Dict[str, D
     out: Dict[str, Dict[str, float]] = {}
     for name in dict.fromkeys(r["sensor"] for r in rows):
         tail = [r for r in rows if r["sensor"] == name][-average_last:]
-        out[name] = {k: sum(r[k] for r in tail) / len(tail) for k in ("translation_cm", "rotation_deg", "time_ms")}
+        out[name] = {k: sum(r[k] for r in tail) / len(tail) for k in ERROR_KEYS}
     return out
 
 
@@ -92,11 +93,10 @@ def camera_depth_errors(
         ``{"camera_rays", "median_abs_m", "p90_abs_m"}`` over the rays that hit a surface in the LiDAR's field
         (NaN figures when there are none).
     """
+    from moisst_ns.stages.stage_floor import depth_error_stats
+
     keep = np.isfinite(true_m) & in_field
-    err = np.abs(rendered_m[keep] - true_m[keep])
-    if err.size == 0:
-        return {"camera_rays": 0, "median_abs_m": float("nan"), "p90_abs_m": float("nan")}
-    return {"camera_rays": int(err.size), "median_abs_m": float(np.median(err)), "p90_abs_m": float(np.percentile(err, 90))}
+    return depth_error_stats(np.abs(rendered_m[keep] - true_m[keep]))
 
 
 def synthetic_scene(rig_root: Path):
@@ -189,7 +189,6 @@ def run_floor(cfg: FloorConfig) -> dict:
     import torch
 
     from moisst_ns.rig.format import load_calibration, load_rig
-    from moisst_ns.runs import RunError
 
     rig = load_rig(cfg.dataset)
     if not (rig.root / "ground_truth.json").is_file():
@@ -244,9 +243,7 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
     fixed_calibration_scene(config.pipeline)
     config.save_config()
 
-    seed_everything(cfg.seed)
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    trainer = set_up_trainer(config, cfg.seed)
     pipeline = trainer.pipeline
     optimizer = pipeline.model.camera_optimizer
     optimizer.set_trainable(False)  # held while the scene trains (released for the registration below)
@@ -271,8 +268,7 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
         param.requires_grad_(True)
         settings = config.optimizers[key]
         opt = settings["optimizer"].setup(params=[param])
-        lr_final = settings["scheduler"].lr_final
-        scheduler = ExponentialDecaySchedulerConfig(lr_final=lr_final, max_steps=cfg.register_steps).setup()
+        scheduler = ExponentialDecaySchedulerConfig(lr_final=settings["scheduler"].lr_final, max_steps=cfg.register_steps).setup()
         steppers.append((opt, scheduler.get_scheduler(optimizer=opt, lr_init=settings["optimizer"].lr)))
     names = rig_params.data.sensor_names
     rows: List[Dict[str, float]] = []
@@ -304,18 +300,16 @@ def nerf_floor(cfg: FloorConfig, rig, out: Path) -> dict:
         writer = csv.DictWriter(handle, fieldnames=["step", "sensor", "translation_cm", "rotation_deg", "time_ms"])
         writer.writeheader()
         writer.writerows(rows)
-    floor = floor_errors([r for r in rows if r["step"] > 0], cfg.average_last)
-    result = {
+    return {
         "scene_steps": config.max_num_iterations,
         "register_steps": cfg.register_steps,
         "average_last": cfg.average_last,
         "map_range_mult": scene_map_range_mult,
         "scene_wall_time_s": scene_wall,
         "register_wall_time_s": register_wall,
-        "floor": floor,
+        "floor": floor_errors([r for r in rows if r["step"] > 0], cfg.average_last),
         "depth": depth,
     }
-    return result
 
 
 def floor_summary(result: dict) -> str:

@@ -28,6 +28,7 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 
 from moisst_ns.report_images import COLORMAP
+from moisst_ns.runs.history import ERROR_COLUMNS, ESTIMATE_COLUMNS
 from moisst_ns.report_views import make_overlays, make_renders
 
 
@@ -35,7 +36,7 @@ def convergence_plots(history: Dict[str, Dict[str, np.ndarray]], truth: Optional
     """(c): per sensor, errors (when logged) and estimates against the step (matplotlib, Agg canvas).
 
     Args:
-        history: ``moisst_ns.cli.evaluate.read_history`` output.
+        history: ``moisst_ns.runs.history.read_history`` output.
         truth: per sensor ``{x, y, z, roll, pitch, yaw, delta_ms}`` of the ground truth (dashed lines), or None.
         out_dir: the report folder.
 
@@ -44,8 +45,6 @@ def convergence_plots(history: Dict[str, Dict[str, np.ndarray]], truth: Optional
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-
-    from moisst_ns.runs.history import ERROR_COLUMNS
 
     files = {}
     (out_dir / "convergence").mkdir(parents=True, exist_ok=True)
@@ -134,10 +133,8 @@ def write_report(
         history = read_history(history_path)
     except RunError as err:
         history_path, history, history_problem = None, None, str(err)
-    truth = None
-    if calib.data.ground_truth is not None:
-        gt = calib.data.ground_truth
-        truth = {n: xyz_rpy_delta(gt.T_ref_sensor[n], gt.time_offset[n]) for n in gt.T_ref_sensor}
+    gt = calib.data.ground_truth
+    truth = None if gt is None else {n: xyz_rpy_delta(gt.T_ref_sensor[n], gt.time_offset[n]) for n in gt.T_ref_sensor}
     plots = convergence_plots(history, truth, out_dir) if history else {}
 
     lines = ["# MOISST calibration report", "", f"Run: `{config_path.resolve()}`" + (f", checkpoint step {step}" if step is not None else ""),
@@ -147,10 +144,8 @@ def write_report(
         lines += ["| sensor | step | x (m) | y (m) | z (m) | roll (deg) | pitch (deg) | yaw (deg) | delta (ms) | err. transl. (cm) | err. rot. (deg) | err. time (ms) |",
                   "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for name, cols in history.items():
-            cells = [f"{cols[c][-1]:.4f}" for c in ("x", "y", "z")] + [f"{cols[c][-1]:.3f}" for c in ("roll", "pitch", "yaw")]
-            cells.append(f"{cols['delta_ms'][-1]:.2f}")
-            for c in ("err_translation_cm", "err_rotation_deg", "err_time_ms"):
-                cells.append(f"{cols[c][-1]:.3f}" if c in cols and np.isfinite(cols[c][-1]) else "-")
+            cells = [f"{cols[c][-1]:.{digits}f}" for c, digits in zip(ESTIMATE_COLUMNS, (4, 4, 4, 3, 3, 3, 2))]
+            cells += [f"{cols[c][-1]:.3f}" if c in cols and np.isfinite(cols[c][-1]) else "-" for c in ERROR_COLUMNS]
             lines.append(f"| {name} | {int(cols['step'][-1])} | " + " | ".join(cells) + " |")
         lines += ["", f"From `{history_path.resolve()}`; errors are '-' when the dataset has no ground_truth.json.", ""]
     else:
@@ -193,15 +188,24 @@ def write_report(
 def uncertainty_lines(config_path: Path, estimate) -> List[str]:
     """report.md's uncertainty section: sigma, verdict and reason per sensor from moisst-calibrate's calibration.json
     (``runs.folder.run_trust``); empty when the run has none."""
-    from moisst_ns.runs.folder import run_trust, summary_markdown
+    from moisst_ns.runs.folder import run_trust, trust_markdown
 
     trusted = run_trust(config_path, estimate)
     if not trusted.trust:
         return []
-    table = summary_markdown({"reference_sensor": trusted.reference_sensor,
-                              "sensors": {n: {"trust": t.to_json()} for n, t in trusted.trust.items()}}, only_trust=True)
-    return table.splitlines() + ["Verdicts: `converged`, `weakly observable` (see weak), `not converged` (moisst-calibrate exits "
-                                 "with status 3; docs/uncertainty.md).", ""]
+    table = trust_markdown({n: t.to_json() for n, t in trusted.trust.items()})[:-1]  # its blank line after the note
+    return table + ["Verdicts: `converged`, `weakly observable` (see weak), `not converged` (moisst-calibrate exits "
+                    "with status 3; docs/uncertainty.md).", ""]
+
+
+def _json_object(path: Path) -> Optional[dict]:
+    """The JSON object in ``path``, or None (no file, not an object, or damaged: a damaged side file only loses the
+    report its extra flags; the report still comes)."""
+    try:
+        loaded = json.loads(path.read_text()) if path.is_file() else None
+    except (OSError, ValueError):
+        return None
+    return loaded if isinstance(loaded, dict) else None
 
 
 def run_verdicts(config_path: Path, rig, calib, renders: List[Dict[str, Any]]) -> Dict[str, Dict[str, Any]]:
@@ -214,17 +218,8 @@ def run_verdicts(config_path: Path, rig, calib, renders: List[Dict[str, Any]]) -
     from moisst_ns.runs.verdict import sensor_verdicts
 
     out = outputs_dir(config_path)
-    summary, calibration = {}, None
-    for name in ("summary.json", "calibration.json"):
-        try:
-            loaded = json.loads((out / name).read_text()) if (out / name).is_file() else None
-        except (OSError, ValueError):
-            loaded = None  # a damaged side file only loses its extra flags; the report still comes
-        if name == "summary.json" and isinstance(loaded, dict):
-            summary = loaded
-        elif isinstance(loaded, dict):
-            calibration = loaded
-    summary = dict(summary)
+    summary = dict(_json_object(out / "summary.json") or {})
+    calibration = _json_object(out / "calibration.json")
     truth_file = rig.root / "ground_truth.json"
     if truth_file.is_file():
         truth = load_calibration(truth_file)

@@ -104,11 +104,9 @@ def draw_points(
         return out
     colors = depth_colors(depth[idx], vmin, vmax)
     col, row = np.floor(uv[idx, 0]).astype(np.int64), np.floor(uv[idx, 1]).astype(np.int64)
-    offsets = np.arange(-radius, radius + 1)
-    cols = (col[:, None, None] + offsets[None, None, :]).repeat(len(offsets), axis=1).reshape(len(idx), -1)
-    rows = (row[:, None, None] + offsets[None, :, None]).repeat(len(offsets), axis=2).reshape(len(idx), -1)
-    point = np.repeat(np.arange(len(idx)), cols.shape[1])
-    cols, rows = cols.ravel(), rows.ravel()
+    d_row, d_col = np.meshgrid(np.arange(-radius, radius + 1), np.arange(-radius, radius + 1), indexing="ij")
+    rows, cols = (row[:, None] + d_row.ravel()).ravel(), (col[:, None] + d_col.ravel()).ravel()
+    point = np.repeat(np.arange(len(idx)), d_row.size)
     inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
     pixel, point = rows[inside] * w + cols[inside], point[inside]
     order = np.lexsort((depth[idx][point], pixel))  # per pixel, nearest point first

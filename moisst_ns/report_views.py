@@ -142,17 +142,14 @@ def make_overlays(rig, calib, out_dir: Path, frames_per_camera: int, min_range: 
             t_cam = frame.timestamp - calib.data.t0
             scans = list(_scans(rig, calib, camera, frame.timestamp, min_range, max_range))
             used = [f"{lidar} {Path(lframe.file_path).name}" for lidar, lframe, *_ in scans]
-            panels, counts = {}, {}
             projected = {mode: project_scans(calib, scans, names.index(camera), t_cam, intr, mode == "prior") for mode in ("prior", "calibrated")}
             vmin, vmax = depth_range(*(z[m] for _, z, m in projected.values()))
             radius = max(0, round(image.shape[1] / 640))
-            files = {}
-            for mode, (uv, z, mask) in projected.items():
-                panels[mode] = draw_points(image, uv, z, mask, vmin, vmax, radius)
-                counts[mode] = int(mask.sum())
-                files[mode] = _save(panels[mode], out_dir / "overlays" / f"{camera}_{k:04d}_{mode}.png")
+            panels = {mode: draw_points(image, uv, z, mask, vmin, vmax, radius) for mode, (uv, z, mask) in projected.items()}
+            files = {mode: _save(panel, out_dir / "overlays" / f"{camera}_{k:04d}_{mode}.png") for mode, panel in panels.items()}
             files["side_by_side"] = _save(side_by_side(panels["prior"], panels["calibrated"]), out_dir / "overlays" / f"{camera}_{k:04d}_side_by_side.png")
-            results.append(_Overlay(camera, k, ", ".join(used), counts["prior"], counts["calibrated"], files))
+            counts = [int(projected[mode][2].sum()) for mode in ("prior", "calibrated")]
+            results.append(_Overlay(camera, k, ", ".join(used), *counts, files))
     return results
 
 
@@ -210,7 +207,7 @@ def make_renders(rig, pipeline, out_dir: Path, render_width: int, min_range: flo
             scans = _scans(rig, calib, camera, frame.timestamp, min_range, max_range)
             uv, z, mask = project_scans(calib, scans, names.index(camera), t_cam, small, prior=False)
             vmin, vmax = depth_range(z[mask])
-            stem = out_dir / "renders" / f"{camera}_{rig.frames_of(camera).index(frame):04d}"
+            stem = out_dir / "renders" / f"{camera}_0000"  # its first frame
             files = {
                 "rendered": _save(rgb, stem.with_name(stem.name + "_rendered.png")),
                 "rendered_depth": _save(depth_colors(depth_z.ravel(), vmin, vmax).reshape(*depth_z.shape, 3), stem.with_name(stem.name + "_rendered_depth.png")),

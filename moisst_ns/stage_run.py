@@ -101,6 +101,15 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def set_up_trainer(config, seed: int):
+    """The set-up trainer of ``config`` (a ``TrainerConfig``), built after ``seed_everything(seed)`` as ``ns-train``
+    builds it."""
+    seed_everything(seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    return trainer
+
+
 def fixed_calibration_scene(pipeline) -> None:
     """Train the scene as the best scene of the budget when no sensor's calibration moves (every non-reference
     sensor held at a stage's estimate, or ``moisst-floor`` at the truth): the phases that protect the scene from

@@ -95,18 +95,11 @@ class NerfactoResult:
 def run_nerfacto(dataset: Path, out: Path, preset: Literal["moisst", "moisst-lite"], steps: int,
                  pose_optimizer: Literal["off", "SO3xR3"], rays: int | None = None) -> NerfactoResult:
     """Train nerfacto (seed 0) on a ``moisst-rig/1`` dataset and return its per-frame camera poses in metres."""
-    from moisst_ns.stage_run import seed_everything
+    from moisst_ns.calibrate import place_run
+    from moisst_ns.stage_run import set_up_trainer
 
-    config = nerfacto_trainer_config(preset, steps, pose_optimizer, rays)
-    config.pipeline.datamanager.data = Path(dataset)
-    config.pipeline.datamanager.dataparser.data = Path(dataset)
-    config.output_dir = Path(out)
-    config.experiment_name = "."
-    config.timestamp = "run"
-    config.machine.seed = 0
-    seed_everything(0)
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    config = place_run(nerfacto_trainer_config(preset, steps, pose_optimizer, rays), Path(dataset), Path(out), "run", 0)
+    trainer = set_up_trainer(config, 0)
     start = time.perf_counter()
     trainer.train()
     per_step = (time.perf_counter() - start) / steps

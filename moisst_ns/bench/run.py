@@ -16,14 +16,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Iterator, List, Optional, Tuple
 
 import numpy as np
 
 from moisst_ns.bench.speed import keep_speed_block, with_speed_table
-from moisst_ns.bench.scenarios import LOSS_SWITCHES, _seeds, load_scenarios, packaged_scenarios
+from moisst_ns.bench.scenarios import LOSS_SWITCHES, load_scenarios, packaged_scenarios
 from moisst_ns.runs import ERROR_KEYS
-from moisst_ns.bench.tables import markdown, merge_frame_errors, plot_error_vs_time, pooled, stage_errors, time_to_target
+from moisst_ns.bench.tables import markdown, merge_frame_errors, plot_error_vs_time, pooled, sensor_means, stage_errors, time_to_target
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -96,8 +96,17 @@ def make_bench_rig(out: Path, raw: dict, seed: int, layout: str, perturb: dict) 
     return folder
 
 
-def calibrate_case(rig: Path, out: Path, raw: dict, case: dict, steps: Optional[int] = None, lidar_rays: Optional[int] = None,
-                   method: str = "moisst-lite") -> dict:
+def bench_rigs(out: Path, raw: dict, which: str, perturb: dict, what: str) -> Iterator[Tuple[int, str, Path]]:
+    """``(seed, layout, rig)`` of the scenario's seeds (``which``: ``all``, or ``first`` alone), each rig made with
+    ``perturb`` (``make_bench_rig``) and announced as ``[moisst-bench] <what>, seed <seed> (<layout>)``."""
+    seeds = [tuple(s) for s in raw["seeds"]]
+    for seed, layout in seeds if which == "all" else seeds[:1]:
+        rig = make_bench_rig(out, raw, seed, layout, perturb)
+        print(f"[moisst-bench] {what}, seed {seed} ({layout})", flush=True)
+        yield seed, layout, rig
+
+
+def calibrate_case(rig: Path, out: Path, raw: dict, case: dict, method: str = "moisst-lite") -> dict:
     """One moisst-calibrate run; returns its summary plus the history statistics and per-frame pose errors."""
     import torch
 
@@ -109,8 +118,8 @@ def calibrate_case(rig: Path, out: Path, raw: dict, case: dict, steps: Optional[
 
     optimise = case.get("optimise", "both")
     flags = {LOSS_SWITCHES[loss]: False for loss in case.get("losses", [])}
-    cfg = CalibrateConfig(dataset=rig, output_dir=out, method=method, max_num_iterations=steps or raw["steps"], seed=0, rays=raw["rays"],
-                          lidar_rays=raw["lidar_rays"] if lidar_rays is None else lidar_rays, report=False, threads=raw.get("threads"),
+    cfg = CalibrateConfig(dataset=rig, output_dir=out, method=method, max_num_iterations=raw["steps"], seed=0, rays=raw["rays"],
+                          lidar_rays=raw["lidar_rays"], report=False, threads=raw.get("threads"),
                           extrinsics=optimise != "temporal", time_offsets=optimise != "spatial", patch_size=case.get("patch_size"), **flags)
     start = time.perf_counter()
     try:
@@ -141,8 +150,7 @@ def calibrate_case(rig: Path, out: Path, raw: dict, case: dict, steps: Optional[
     return result
 
 
-def nerfacto_case(rig: Path, out: Path, raw: dict, steps: int, pose_optimizer: str, preset: str = "moisst-lite",
-                  rays: Optional[int] = None) -> dict:
+def nerfacto_case(rig: Path, out: Path, raw: dict, steps: int, pose_optimizer: str, preset: str = "moisst-lite") -> dict:
     """A plain nerfacto run (baseline or timing) with the preset's field; per-frame pose errors of its cameras."""
     import torch
 
@@ -150,7 +158,7 @@ def nerfacto_case(rig: Path, out: Path, raw: dict, steps: int, pose_optimizer: s
     from moisst_ns.rig.calibration import RigData, frame_pose_errors, frame_poses
     from moisst_ns.rig.format import load_calibration, load_rig
 
-    result = run_nerfacto(rig, out, preset, steps, pose_optimizer, rays=rays if rays is not None else raw["rays"])
+    result = run_nerfacto(rig, out, preset, steps, pose_optimizer, rays=raw["rays"])
     rig_ = load_rig(rig)
     truth = load_calibration(rig / "ground_truth.json")
     data = RigData.from_rig(rig_, truth)
@@ -176,9 +184,7 @@ def floor_cases(out: Path, raw: dict, perturb: dict) -> List[dict]:
 
     spec = raw["floor"]
     floors = []
-    for seed, layout in _seeds(raw, spec.get("seeds", "all")):
-        rig = make_bench_rig(out, raw, seed, layout, perturb)
-        print(f"[moisst-bench] floor, seed {seed} ({layout})", flush=True)
+    for seed, layout, rig in bench_rigs(out, raw, spec.get("seeds", "all"), perturb, "floor"):
         started = time.perf_counter()
         measured = run_floor(FloorConfig(dataset=rig, output_dir=out / "runs" / f"floor-{layout}-s{seed}",
                                          scene_steps=spec.get("steps", raw["steps"]), register_steps=spec.get("register_steps", 100),
@@ -215,32 +221,18 @@ def run_bench(cfg: BenchConfig) -> dict:
             docs.write_text(with_speed_table(docs.read_text() if docs.is_file() else "# Benchmarks\n", table))
         print(table)
         return result
-    if cfg.scenarios is not None:
-        path = cfg.scenarios
-    else:
-        path = packaged_scenarios("full" if cfg.full else "quick")
+    path = cfg.scenarios if cfg.scenarios is not None else packaged_scenarios("full" if cfg.full else "quick")
     raw = load_scenarios(path)
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     command = "moisst-bench " + " ".join(sys.argv[1:]) if sys.argv and "bench" in Path(sys.argv[0]).name else f"moisst-bench --{raw['name']}"
     cases = []
     for case in raw["case"]:
-        runs = []
-        for seed, layout in _seeds(raw, case.get("seeds", "all")):
-            rig = make_bench_rig(out, raw, seed, layout, case["perturb"])
-            print(f"[moisst-bench] case {case['id']}, seed {seed} ({layout})", flush=True)
-            run = calibrate_case(rig, out / "runs" / f"{case['id']}-{layout}-s{seed}", raw, case)
-            run.update(seed=seed, layout=layout)
-            runs.append(run)
+        runs = [dict(calibrate_case(rig, out / "runs" / f"{case['id']}-{layout}-s{seed}", raw, case), seed=seed, layout=layout)
+                for seed, layout, rig in bench_rigs(out, raw, case.get("seeds", "all"), case["perturb"], f"case {case['id']}")]
         ok = [r for r in runs if "history" in r]
-        before: Dict[str, dict] = {}
-        for r in ok:
-            for s, e in r["errors_before"].items():
-                before.setdefault(s, []).append(e)
-        before = {s: {k: float(np.mean([e[k] for e in es])) for k in ERROR_KEYS} for s, es in before.items()}
+        before = sensor_means(((s, e) for r in ok for s, e in r["errors_before"].items()), ERROR_KEYS)
         frame = {key: merge_frame_errors([r[key] for r in ok]) for key in ("frame_errors", "frame_errors_prior")}
         cases.append({"lidar_first": stage_errors(ok), "id": case["id"], "tables": case["tables"], "perturb": case["perturb"], "optimise": case.get("optimise", "both"),
                       "patch_size": case.get("patch_size"),
@@ -259,12 +251,8 @@ def run_bench(cfg: BenchConfig) -> dict:
     # Baseline: nerfacto's per-frame pose optimiser on the combined rigs.
     base = raw.get("baseline")
     if base:
-        runs = []
-        for seed, layout in _seeds(raw, base.get("seeds", "first")):
-            rig = make_bench_rig(out, raw, seed, layout, combined["perturb"])
-            print(f"[moisst-bench] baseline nerfacto SO3xR3, seed {seed} ({layout})", flush=True)
-            b = nerfacto_case(rig, out / "runs" / f"nerfacto-so3xr3-{layout}-s{seed}", raw, base.get("steps", raw["steps"]), "SO3xR3")
-            runs.append(b["frame_errors"])
+        runs = [nerfacto_case(rig, out / "runs" / f"nerfacto-so3xr3-{layout}-s{seed}", raw, base.get("steps", raw["steps"]), "SO3xR3")["frame_errors"]
+                for seed, layout, rig in bench_rigs(out, raw, base.get("seeds", "first"), combined["perturb"], "baseline nerfacto SO3xR3")]
         result["baseline"] = {"frame_errors": merge_frame_errors(runs)}
 
     # Floor: the scene at the truth, the calibration released at the truth (moisst-floor), per rig.
@@ -275,13 +263,10 @@ def run_bench(cfg: BenchConfig) -> dict:
     result["timing"] = []
     for preset, steps in raw.get("timing", []):
         print(f"[moisst-bench] timing {preset}, {steps} steps", flush=True)
-        rays = raw["rays"] if preset == "moisst-lite" else None
-        timing_raw = dict(raw, rays=rays)
-        cam_only = calibrate_case(combined_rig, out / "runs" / f"timing-{preset}-cameras", timing_raw, {}, steps=steps, lidar_rays=0,
-                                  method=preset)
-        with_lidar = calibrate_case(combined_rig, out / "runs" / f"timing-{preset}-lidar", dict(timing_raw, lidar_rays=None), {},
-                                    steps=steps, method=preset)
-        plain = nerfacto_case(combined_rig, out / "runs" / f"timing-nerfacto-{preset}", timing_raw, steps, "off", preset=preset, rays=rays)
+        timing_raw = dict(raw, rays=raw["rays"] if preset == "moisst-lite" else None, steps=steps)
+        cam_only = calibrate_case(combined_rig, out / "runs" / f"timing-{preset}-cameras", dict(timing_raw, lidar_rays=0), {}, method=preset)
+        with_lidar = calibrate_case(combined_rig, out / "runs" / f"timing-{preset}-lidar", dict(timing_raw, lidar_rays=None), {}, method=preset)
+        plain = nerfacto_case(combined_rig, out / "runs" / f"timing-nerfacto-{preset}", timing_raw, steps, "off", preset=preset)
         m = cam_only.get("seconds_per_step", float("nan"))
         result["timing"].append({"preset": preset, "steps": steps, "method_run": [cam_only.get("method"), with_lidar.get("method")], "moisst_s": m, "nerfacto_s": plain["seconds_per_step"],
                                  "ratio": m / plain["seconds_per_step"], "moisst_lidar_s": with_lidar.get("seconds_per_step", float("nan"))})
@@ -308,9 +293,9 @@ def run_bench(cfg: BenchConfig) -> dict:
     md = markdown(result)
     (out / "benchmarks.md").write_text(md)
     if cfg.docs:
-        (REPO / "docs").mkdir(exist_ok=True)
         docs = REPO / "docs" / "benchmarks.md"
-        (REPO / "docs" / "benchmarks.md").write_text(keep_speed_block(docs.read_text() if docs.is_file() else "", md))
+        docs.parent.mkdir(exist_ok=True)
+        docs.write_text(keep_speed_block(docs.read_text() if docs.is_file() else "", md))
         shutil.copyfile(out / "bench_error_vs_time.png", REPO / "docs" / "bench_error_vs_time.png")
     print(md)
     return result

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import List, Tuple
 
 LOSS_SWITCHES = {"no-depth": "depth_loss", "no-dssim": "dssim_loss", "no-depth-smoothness": "depth_smoothness_loss"}
 OPTIMISE = ("both", "spatial", "temporal")
@@ -85,9 +84,4 @@ def load_scenarios(path: Path) -> dict:
         if not case.get("tables"):
             raise BenchError(f"{path}: {where}.tables: missing (which table cells this case fills)")
     return raw
-
-
-def _seeds(raw: dict, which: str) -> List[Tuple[int, str]]:
-    pairs = [tuple(s) for s in raw["seeds"]]
-    return pairs if which == "all" else pairs[:1]
 

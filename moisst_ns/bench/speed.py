@@ -63,7 +63,8 @@ def _trainer(kind: Literal["moisst", "nerfacto"], preset: str, rig: Path, out: P
     from moisst_ns.method_configs import DEFAULT_ITERATIONS
     from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
-    from moisst_ns.calibrate import CalibrateConfig, calibrate_trainer_config, seed_everything
+    from moisst_ns.calibrate import CalibrateConfig, calibrate_trainer_config, place_run
+    from moisst_ns.stage_run import set_up_trainer
 
     steps = DEFAULT_ITERATIONS[preset]
     shutil.rmtree(out, ignore_errors=True)
@@ -72,15 +73,10 @@ def _trainer(kind: Literal["moisst", "nerfacto"], preset: str, rig: Path, out: P
         config = calibrate_trainer_config(cfg, rig, out, steps)
         config.pipeline = VanillaPipelineConfig(datamanager=config.pipeline.datamanager, model=config.pipeline.model)  # the NeRF's steps alone
     else:
-        config = nerfacto_trainer_config(preset, steps, "off")
-        config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = rig
-        config.output_dir, config.experiment_name, config.timestamp = out, ".", "run"
+        config = place_run(nerfacto_trainer_config(preset, steps, "off"), rig, out, "run", 0)
     config.vis = "tensorboard"
-    config.machine.seed = 0
-    seed_everything(0)
     started = time.perf_counter()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    trainer = set_up_trainer(config, 0)
     return trainer, steps, time.perf_counter() - started
 
 
@@ -102,12 +98,11 @@ def step_seconds(trainer, steps: int, plan: SpeedPlan) -> float:
     for i, step in enumerate(range(start, start + plan.warmup_steps + plan.timed_steps)):
         if i == plan.warmup_steps:
             started = time.perf_counter()
-        for location in (TrainingCallbackLocation.BEFORE_TRAIN_ITERATION, None, TrainingCallbackLocation.AFTER_TRAIN_ITERATION):
-            if location is None:
-                trainer.train_iteration(step)  # as nerfstudio's Trainer.train: callbacks before and after each step
-                continue
-            for callback in trainer.callbacks:
-                callback.run_callback_at_location(step, location=location)
+        for callback in trainer.callbacks:  # as nerfstudio's Trainer.train: callbacks before and after each step
+            callback.run_callback_at_location(step, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        trainer.train_iteration(step)
+        for callback in trainer.callbacks:
+            callback.run_callback_at_location(step, location=TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
     return (time.perf_counter() - started) / plan.timed_steps
 
 
@@ -130,17 +125,16 @@ def run_speed(out: Path, machine: dict) -> dict:
     result: dict = {"presets": {}, "machine": machine, "rig": str(rig), "torch_threads": torch.get_num_threads()}
     for preset in PRESETS:
         plan = PLANS[preset]
-        row: dict = {"steps_timed": plan.timed_steps, "setup_s": {}}
+        seconds, setup_s = {}, {}
         for name, kind, lidar in (("nerfacto", "nerfacto", False), ("cameras", "moisst", False), ("lidar", "moisst", True)):
             print(f"[moisst-bench] speed: {preset}, {name}", flush=True)
-            trainer, steps, setup = _trainer(kind, preset, rig, out / "runs" / f"speed-{preset}-{name}", lidar)
-            row[name] = step_seconds(trainer, steps, plan)
-            row["setup_s"][name] = setup
+            trainer, steps, setup_s[name] = _trainer(kind, preset, rig, out / "runs" / f"speed-{preset}-{name}", lidar)
+            seconds[name] = step_seconds(trainer, steps, plan)
             del trainer
-        row = {"s_per_step": row["cameras"], "nerfacto_s_per_step": row["nerfacto"], "ratio": row["cameras"] / row["nerfacto"],
-               "s_per_step_lidar": row["lidar"], "ratio_lidar": row["lidar"] / row["nerfacto"], "setup_s": row["setup_s"],
-               "steps_timed": plan.timed_steps}
-        result["presets"][preset] = row
+        row = result["presets"][preset] = {
+            "s_per_step": seconds["cameras"], "nerfacto_s_per_step": seconds["nerfacto"], "ratio": seconds["cameras"] / seconds["nerfacto"],
+            "s_per_step_lidar": seconds["lidar"], "ratio_lidar": seconds["lidar"] / seconds["nerfacto"], "setup_s": setup_s,
+            "steps_timed": plan.timed_steps}
         print(f"[moisst-bench] {preset}: {row['s_per_step']:.3f} s/step (nerfacto {row['nerfacto_s_per_step']:.3f}, "
               f"{row['ratio']:.2f}x), with LiDAR {row['s_per_step_lidar']:.3f} s/step ({row['ratio_lidar']:.2f}x)", flush=True)
     result["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
@@ -180,13 +174,11 @@ def with_speed_table(page: str, table: str) -> str:
     if start < 0 or end < 0:
         title_end = page.find("\n") + 1
         return page[:title_end] + f"\n{SPEED_BLOCK[0]}\n## Speed\n\n{table}\n{SPEED_BLOCK[1]}\n" + page[title_end:]
-    block = page[start:end]
-    lines = block.split("\n")
-    rows = [i for i, line in enumerate(lines) if line.startswith("| preset | MOISST s/step")]
-    if not rows:
-        lines.insert(len(lines), table + "\n")
+    lines = page[start:end].split("\n")
+    first = next((i for i, line in enumerate(lines) if line.startswith("| preset | MOISST s/step")), None)
+    if first is None:
+        lines.append(table + "\n")
     else:
-        first = rows[0]
         last = first
         while last + 1 < len(lines) and lines[last + 1].startswith("|"):
             last += 1

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -57,17 +57,18 @@ def _cell(stat: Optional[Tuple[float, float]], digits: int) -> str:
     return "–" if stat is None else f"{stat[0]:.{digits}f} ± {stat[1]:.{digits}f}"
 
 
+def sensor_means(entries: Iterable[Tuple[str, dict]], keys: Sequence[str]) -> Dict[str, Dict[str, float]]:
+    """Per sensor, the mean of each of ``keys`` over its ``(sensor, values)`` entries (sensors in first-seen order)."""
+    values: Dict[str, List[dict]] = {}
+    for sensor, entry in entries:
+        values.setdefault(sensor, []).append(entry)
+    return {s: {k: float(np.mean([e[k] for e in es])) for k in keys} for s, es in values.items()}
+
+
 def stage_errors(runs: List[dict]) -> Dict[str, Dict[str, float]]:
     """Per LiDAR, the LiDAR-first stage's errors and wall time averaged over the runs that ran it."""
-    out: Dict[str, Dict[str, List[float]]] = {}
-    for run in runs:
-        for sensor, entry in run.get("lidar_first", {}).items():
-            if "errors_after" in entry:
-                cell = out.setdefault(sensor, {k: [] for k in ERROR_KEYS + ("wall_s",)})
-                for k in ERROR_KEYS:
-                    cell[k].append(entry["errors_after"][k])
-                cell["wall_s"].append(entry["wall_s"])
-    return {s: {k: float(np.mean(v)) for k, v in cols.items()} for s, cols in out.items()}
+    return sensor_means(((s, {**e["errors_after"], "wall_s": e["wall_s"]}) for run in runs for s, e in run.get("lidar_first", {}).items()
+                         if "errors_after" in e), ERROR_KEYS + ("wall_s",))
 
 
 def _stage_cell(case: dict, sensor: str) -> str:
@@ -106,11 +107,8 @@ def markdown(result: dict) -> str:
                 name, _, label = tag.partition(":")
                 if name != table:
                     continue
-                stats = case["pooled"]
-                before = case["before"]
-                for sensor in sorted(stats):
-                    s = stats[sensor]
-                    b = before.get(sensor, {})
+                for sensor, s in sorted(case["pooled"].items()):
+                    b = case["before"].get(sensor, {})
                     rows.append(f"| {label or case['id']} | {sensor} | {b.get('translation_cm', float('nan')):.1f} / "
                                 f"{b.get('rotation_deg', float('nan')):.2f} / {b.get('time_ms', float('nan')):.0f} | "
                                 f"{_cell(s.get('translation_cm'), 1)} | {_cell(s.get('rotation_deg'), 2)} | {_cell(s.get('time_ms'), 1)} | "

@@ -115,8 +115,9 @@ def check_folders(manifest: Manifest, out: Path) -> None:
             raise FleetError(f"{manifest.path}: drive {drive.id}: dataset {drive.dataset} and its output folder {folder} overlap")
 
 
-def _skip_slow_import(shim: Path) -> None:
-    """Make ``rfc3987_syntax`` unimportable in the Ray processes started from now on (not in this one).
+def _skip_slow_import(shim: Path) -> List[str]:
+    """The ``PYTHONPATH`` entries (``[shim]``, or none) that make ``rfc3987_syntax`` unimportable in the Ray processes
+    started with them (not in this one).
 
     jsonschema's optional IRI format checker builds a Lark grammar when imported: 4.5 of the 6.9 s that Ray's dashboard
     agent takes to import in this environment (``python -X importtime``). Ray 2.60's raylet gives that agent a hard
@@ -127,10 +128,10 @@ def _skip_slow_import(shim: Path) -> None:
     import importlib.util
 
     if importlib.util.find_spec("rfc3987_syntax") is None:
-        return
+        return []
     (shim / "rfc3987_syntax").mkdir(parents=True, exist_ok=True)
     (shim / "rfc3987_syntax" / "__init__.py").write_text('raise ImportError("skipped in Ray processes by moisst-fleet (slow import)")\n')
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(shim)] + [q for q in os.environ.get("PYTHONPATH", "").split(os.pathsep) if q])
+    return [str(shim)]
 
 
 def start_ray(cfg: FleetConfig, shim: Path) -> None:
@@ -149,8 +150,7 @@ def start_ray(cfg: FleetConfig, shim: Path) -> None:
         kwargs.update(num_cpus=cfg.cpus or os.cpu_count() or 1, num_gpus=0, include_dashboard=False)
         # local workers inherit this environment: let them import moisst_ns from where the driver did
         package_parent = str(Path(__file__).resolve().parents[2])
-        os.environ["PYTHONPATH"] = os.pathsep.join([package_parent] + [q for q in os.environ.get("PYTHONPATH", "").split(os.pathsep) if q])
-        _skip_slow_import(shim)
+        os.environ["PYTHONPATH"] = os.pathsep.join(_skip_slow_import(shim) + [package_parent] + [q for q in (saved or "").split(os.pathsep) if q])
     try:
         ray.init(address=cfg.address or "local", **kwargs)  # "local": a new Ray, never one found on the machine
     except Exception as err:  # connection refused, bad address, a node that did not start
@@ -217,15 +217,12 @@ def run_drives(cfg: FleetConfig, manifest: Manifest, report: Callable[[str], Non
                     row.update(status="failed", reason=one_line(getattr(err, "cause", None) or err))
                 except ray.exceptions.RayError as err:  # a worker that died (killed, out of memory) after its retries
                     row.update(status="failed", reason=one_line(err))
-                what = f"{drive.id} done in {row['wall_s']:.0f} s" if row["status"] == "done" else f"{drive.id} FAILED: {row['reason']}"
-                report(what)
+                report(f"{drive.id} done in {row['wall_s']:.0f} s" if row["status"] == "done" else f"{drive.id} FAILED: {row['reason']}")
             done = sum(r["status"] == "done" and not r["resumed"] for r in rows.values())
             failed = sum(r["status"] == "failed" for r in rows.values())
             running = min(slots, len(pending))
             elapsed = time.time() - started
-            eta = ""
-            if pending and done + failed:
-                eta = f", ETA {elapsed / (done + failed) * len(pending) / 60:.1f} min"
+            eta = f", ETA {elapsed / (done + failed) * len(pending) / 60:.1f} min" if pending and done + failed else ""
             report(f"{done + skipped}/{len(manifest.drives)} done, {running} running, {len(pending) - running} waiting, "
                    f"{failed} failed, {elapsed:.0f} s{eta}")
     finally:

@@ -222,12 +222,10 @@ def build_summary(estimate: Calibration, prior: Calibration, types: Dict[str, st
     return summary
 
 
-def summary_markdown(summary: dict, only_trust: bool = False) -> str:
-    """summary.md: the tables of ``build_summary`` as Markdown (``only_trust``: just the uncertainty table)."""
+def summary_markdown(summary: dict) -> str:
+    """summary.md: the tables of ``build_summary`` as Markdown."""
     run = summary.get("run", {})
     lines = ["# Calibration summary", ""]
-    if only_trust:
-        return "\n".join(_trust_markdown(summary))
     if run:
         lines += [f"Run `{run.get('config')}`, step {run.get('step')}, dataset `{run.get('dataset')}`.", ""]
     lines += [f"Reference sensor: `{summary['reference_sensor']}` (identity, delta 0). Units: metres, degrees "
@@ -249,7 +247,7 @@ def summary_markdown(summary: dict, only_trust: bool = False) -> str:
         lines.append(f"| {name} | {c['x']:.4f} | {c['y']:.4f} | {c['z']:.4f} | {c['roll']:.3f} | {c['pitch']:.3f} | "
                      f"{c['yaw']:.3f} | {c['delta_ms']:.2f} | {c['translation_cm']:.2f} | {c['rotation_deg']:.3f} |")
     lines.append("")
-    lines += _trust_markdown(summary)
+    lines += trust_markdown({n: s.get("trust") for n, s in summary["sensors"].items()})
     if "errors_after" in summary:
         lines += ["## Errors against ground_truth.json", "",
                   "| sensor | translation (cm) before | after | rotation (deg) before | after | time (ms) before | after |",
@@ -302,9 +300,10 @@ def run_trust(config_path: Path, estimate: Calibration) -> Calibration:
     return written
 
 
-def _trust_markdown(summary: dict) -> List[str]:
-    """The uncertainty / verdict table of the sensors whose summary entry has ``trust`` (none: no lines)."""
-    trusted = {n: s["trust"] for n, s in summary["sensors"].items() if s.get("trust")}
+def trust_markdown(trust: Dict[str, Optional[dict]]) -> List[str]:
+    """The uncertainty / verdict table (Markdown lines, a blank one last) of the sensors of ``trust`` (name -> the
+    ``trust`` entry of ``build_summary``) that have one (none: no lines)."""
+    trusted = {n: t for n, t in trust.items() if t}
     lines: List[str] = []
     if trusted:
         lines += ["## Uncertainty (1 sigma) and verdict", "",

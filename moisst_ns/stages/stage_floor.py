@@ -118,8 +118,11 @@ def map_depth_errors(rig: Rig, truth: Calibration, cast: RayCaster, frame_step: 
         hit = cast(origins, rays / distance[:, None])
         ok = np.isfinite(hit)
         errors.append(np.abs(distance[ok] - hit[ok]))
-    joined = np.concatenate(errors) if errors else np.zeros(0)
-    if not joined.size:
-        return {"map_points": len(world), "camera_rays": 0, "median_abs_m": float("nan"), "p90_abs_m": float("nan")}
-    return {"map_points": len(world), "camera_rays": int(joined.size), "median_abs_m": float(np.median(joined)),
-            "p90_abs_m": float(np.percentile(joined, 90))}
+    return {"map_points": len(world), **depth_error_stats(np.concatenate(errors) if errors else np.zeros(0))}
+
+
+def depth_error_stats(errors: Float[np.ndarray, "num"]) -> Dict[str, float]:
+    """``{"camera_rays", "median_abs_m", "p90_abs_m"}`` of absolute depth errors (metres; NaN figures when empty)."""
+    if not errors.size:
+        return {"camera_rays": 0, "median_abs_m": float("nan"), "p90_abs_m": float("nan")}
+    return {"camera_rays": int(errors.size), "median_abs_m": float(np.median(errors)), "p90_abs_m": float(np.percentile(errors, 90))}
