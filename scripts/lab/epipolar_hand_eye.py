@@ -21,7 +21,7 @@ from scipy.optimize import least_squares
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.camera.camera_map import _camera_matrix, _distortion
+from moisst_ns.stages.camera.camera_map import camera_matrix, distortion
 from moisst_ns.stages.camera.camera_registration import camera_sensors
 from moisst_ns.stages.camera.photometric import CameraFrames
 from moisst_ns.stages.camera.feature_start import _sift
@@ -31,7 +31,7 @@ from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, PARAMETERS, TES
 def own_matches(images, intrinsics, lag, features=2000, ratio=0.8, ransac_px=1.0):
     import cv2
 
-    K, dist = _camera_matrix(intrinsics), _distortion(intrinsics)
+    K, dist = camera_matrix(intrinsics), distortion(intrinsics)
     keys = [_sift(np.asarray(image), features) for image in images]
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     pair, a_all, b_all = [], [], []
