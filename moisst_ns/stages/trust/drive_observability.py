@@ -9,7 +9,6 @@ has the models, the rules and the measurements. Pure numpy/torch/roma: nothing h
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from itertools import takewhile
 from typing import Dict, List, Literal
 
 import numpy as np
@@ -110,8 +109,12 @@ def frame_pairs(times: Float[np.ndarray, "num"], max_lag_s: float) -> np.ndarray
         (P, 2) int array.
     """
     order = np.argsort(times)
-    out = [(order[a], order[b]) for a in range(len(order))
-           for b in takewhile(lambda b: b == a + 1 or abs(times[order[b]] - times[order[a]]) <= max_lag_s, range(a + 1, len(order)))]
+    out = []
+    for a in range(len(order)):
+        for b in range(a + 1, len(order)):
+            if b > a + 1 and abs(times[order[b]] - times[order[a]]) > max_lag_s:
+                break
+            out.append((order[a], order[b]))
     return np.asarray(out, dtype=np.int64).reshape(-1, 2)
 
 
