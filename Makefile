@@ -14,11 +14,12 @@ demo: install
 	@# exit status 3 = finished, but some sensor is not converged (its last lines say which to trust): not a failed demo
 	.venv/bin/moisst-calibrate demo/rig --output-dir demo/calibration --method moisst-lite || [ $$? -eq 3 ]
 
+# two processes, each taking whole test files (a file's fixtures are built once): much of a stage is one-threaded
 test: install-fleet
-	.venv/bin/python -m pytest -q tests
+	.venv/bin/python -m pytest -q -n 2 --dist loadfile tests
 
 test-fast: install-fleet
-	.venv/bin/python -m pytest -q -m "not slow" tests
+	.venv/bin/python -m pytest -q -n 2 --dist loadfile -m "not slow" tests
 
 bench: install
 	.venv/bin/moisst-bench --quick --out outputs/bench

@@ -13,7 +13,7 @@ steps = 8
 rays = 128
 lidar_rays = 32
 last = 1
-rig = { width = 48, height = 36, frames = 6 }
+rig = { width = 48, height = 36, frames = 6, lidar_azimuth_steps = 256, lidar_max_points = 3000 }
 seeds = [[0, "street"], [1, "plaza"]]
 target = { translation_cm = 1.0, rotation_deg = 0.05, time_ms = 0.5 }
 timing = [["moisst", 1]]
@@ -68,6 +68,8 @@ def test_shipped_scenarios_cover_the_paper_protocol():
         (lambda s: s.replace('optimise = "temporal"', 'optimise = "temporal"\npatch_size = 0'), "case[2].patch_size: must be a positive integer"),
         (lambda s: s.replace('register_steps = 2', 'register_steps = 0'), "floor.register_steps: must be a positive integer"),
         (lambda s: s.replace('register_steps = 2', 'register_steps = 2, scene = 3'), "floor.scene: unknown key"),
+        (lambda s: s.replace('frames = 6, ', 'frames = 6, lidar_spin = 2, '), "rig.lidar_spin: unknown moisst-synth setting"),
+        (lambda s: s.replace('frames = 6, ', ''), "rig.frames: missing"),
     ],
 )
 def test_bad_scenario_file_gets_one_line_error(tmp_path, edit, message):

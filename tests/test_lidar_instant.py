@@ -76,7 +76,8 @@ def test_only_what_the_motion_left_undetermined_is_taken_without_its_sigma(drive
     left undetermined: the lever arm and the roll move, the pitch and the yaw stay exactly."""
     rig, truth, start, scans = drive
     calibration = Calibration(start.reference_sensor, dict(start.T_ref_sensor), dict(start.time_offset))
-    out = place_lidars(rig, calibration, ["image_01", "image_03"], {"velodyne": ["x", "y", "z", "roll"]}, {}, log=lambda line: None)
+    out = place_lidars(rig, calibration, ["image_01", "image_03"], {"velodyne": ["x", "y", "z", "roll"]}, {}, log=lambda line: None,
+                      scans={"velodyne": scans})
     moved = np.abs(parameter_difference(start.T_ref_sensor["velodyne"], 0.0, calibration.T_ref_sensor["velodyne"], 0.0))
     assert out["velodyne"].taken == ["x", "y", "z", "roll"]
     assert np.all(moved[:3] > 0.2) and np.rad2deg(moved[3]) > 3.0  # the prior was 50 cm and 5.2 deg off on these
@@ -92,7 +93,8 @@ def test_a_motion_estimate_many_sigma_away_hands_over_every_placed_parameter(dri
     rig, truth, start, scans = drive
     calibration = Calibration(start.reference_sensor, dict(start.T_ref_sensor), dict(start.time_offset))
     tight = [0.001] * 3 + [np.deg2rad(0.01)] * 3 + [0.001]
-    out = place_lidars(rig, calibration, ["image_01", "image_03"], {"velodyne": ["x", "y", "z", "roll"]}, {"velodyne": tight}, log=lambda line: None)
+    out = place_lidars(rig, calibration, ["image_01", "image_03"], {"velodyne": ["x", "y", "z", "roll"]}, {"velodyne": tight}, log=lambda line: None,
+                      scans={"velodyne": scans})
     assert out["velodyne"].taken == out["velodyne"].placed and {"pitch", "yaw"} <= set(out["velodyne"].taken)
     error = np.abs(parameter_difference(truth.T_ref_sensor["velodyne"], 0.0, calibration.T_ref_sensor["velodyne"], 0.0))
     assert np.all(np.rad2deg(error[3:6]) < 0.3), np.rad2deg(error[3:6])
@@ -111,7 +113,8 @@ def test_a_motion_estimate_in_a_turned_frame_gives_the_trajectorys_turn(drive):
     motion[:3, 3] = start.T_ref_sensor["velodyne"][:3, 3]
     calibration = Calibration(start.reference_sensor, {**start.T_ref_sensor, "velodyne": motion}, dict(start.time_offset))
     tight = [0.001] * 3 + [np.deg2rad(0.01)] * 3 + [0.001]
-    out = place_lidars(rig, calibration, ["image_01", "image_03"], {"velodyne": ["x", "y", "z", "roll"]}, {"velodyne": tight}, log=lambda line: None)
+    out = place_lidars(rig, calibration, ["image_01", "image_03"], {"velodyne": ["x", "y", "z", "roll"]}, {"velodyne": tight}, log=lambda line: None,
+                      scans={"velodyne": scans})
     found = np.array(out["velodyne"].turn)
     assert np.all(np.abs(np.rad2deg(found - turn)) < 0.3), np.rad2deg(found)
     assert abs(found @ motion[:3, 0]) < 1e-9  # nothing about the LiDAR's x (its roll axis), radians
@@ -200,11 +203,12 @@ def test_placed_again_against_the_cameras_registered_again(drive):
         T[:3, :3] = Rotation.from_rotvec(np.deg2rad([0.0, 0.1, 0.0])).as_matrix() @ T[:3, :3]
         turned.T_ref_sensor[camera] = T
     tight = [0.001] * 3 + [np.deg2rad(0.01)] * 3 + [0.001]
-    first = place_lidars(rig, turned, cameras, {"velodyne": ["x", "y", "z", "roll"]}, {"velodyne": tight}, log=lambda line: None)
+    first = place_lidars(rig, turned, cameras, {"velodyne": ["x", "y", "z", "roll"]}, {"velodyne": tight}, log=lambda line: None,
+                      scans={"velodyne": scans})
     before = np.rad2deg(np.abs(parameter_difference(truth.T_ref_sensor["velodyne"], 0.0, turned.T_ref_sensor["velodyne"], 0.0)[3:6]))
     calibration = Calibration(start.reference_sensor, {**start.T_ref_sensor, "velodyne": turned.T_ref_sensor["velodyne"]}, dict(start.time_offset))
     direct = place_lidar(rig, calibration, "velodyne", scans, cameras, log=lambda line: None)
-    again = place_again(rig, calibration, first, cameras, log=lambda line: None)["velodyne"]
+    again = place_again(rig, calibration, first, cameras, log=lambda line: None, scans={"velodyne": scans})["velodyne"]
     assert again.taken == first["velodyne"].taken and again.turn == first["velodyne"].turn
     expected = parameter_difference(turned.T_ref_sensor["velodyne"], 0.0, direct.estimate.matrix(), 0.0)[:6]
     moved = parameter_difference(turned.T_ref_sensor["velodyne"], 0.0, calibration.T_ref_sensor["velodyne"], 0.0)[:6]

@@ -115,6 +115,7 @@ def test_the_map_range_loss_starts_with_the_depth_loss_and_trains_the_scene(tmp_
     config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = rig
     config.pipeline.datamanager.map_range_sensors = ("cam_front",)
     config.pipeline.model.map_range_mult = 1.0
+    config.pipeline.lidar_first = config.pipeline.camera_registration = False  # the LiDAR prior is the truth here
     config.output_dir, config.experiment_name, config.timestamp, config.vis = tmp_path / "out", ".", "run", "tensorboard"
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()

@@ -1,6 +1,6 @@
 """``ns-train moisst-lite`` is ``moisst-calibrate`` (issue 36): one code path, ``MoisstPipeline``.
 
-A tiny rig (64x48, 6 frames per sensor, 3 cameras and a LiDAR), 20 steps, seed 0, one torch thread: the LiDAR-first
+A tiny rig (64x48, 6 frames per sensor, 3 cameras and a LiDAR of 3000 points a scan), 20 steps, seed 0, one torch thread: the LiDAR-first
 stage runs, the camera registration keeps both cameras' priors (6 frames are too few for it), the NeRF calibrates
 them, then the held-back checks and the report. ``ns-train`` must leave the same calibration.json in its run folder as
 ``moisst-calibrate`` leaves in OUT; the finished run loads, exports, is served by ``ns-viewer`` and resumes without
@@ -26,19 +26,26 @@ STEPS, SEED = 20, 0
 ENV = dict(os.environ, OMP_NUM_THREADS="1")
 
 
+def start(log: Path, *argv, cwd=None) -> subprocess.Popen:
+    """``argv`` started, its output into ``log`` (a file: two runs side by side never wait on a full pipe)."""
+    return subprocess.Popen([str(BIN / argv[0]), *map(str, argv[1:])], cwd=cwd, env=ENV, stdout=log.open("w"), stderr=subprocess.STDOUT)
+
+
 def run(*argv, cwd=None) -> subprocess.CompletedProcess:
     return subprocess.run([str(BIN / argv[0]), *map(str, argv[1:])], cwd=cwd, env=ENV, capture_output=True, text=True)
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
+    """The two runs side by side (one thread each): ``ns-train moisst-lite`` and ``moisst-calibrate``."""
     root = tmp_path_factory.mktemp("ns_train")
-    rig = make_rig(SynthConfig(out=root / "rig", width=64, height=48, frames=6, seed=0))
-    trained = run("ns-train", "moisst-lite", "--data", rig, "--max-num-iterations", STEPS, "--machine.seed", SEED, "--vis", "tensorboard",
-                  "--viewer.quit-on-train-completion", "True", "--output-dir", root / "outputs", cwd=root)
-    assert trained.returncode == 0, trained.stderr[-3000:]
-    calibrated = run("moisst-calibrate", rig, "--output-dir", root / "calibrated", "--max-num-iterations", STEPS, "--seed", SEED, "--threads", 1)
-    assert calibrated.returncode in (0, 3), calibrated.stderr[-3000:]  # 3: a sensor not converged (20 steps)
+    rig = make_rig(SynthConfig(out=root / "rig", width=64, height=48, frames=6, seed=0, lidar_azimuth_steps=256, lidar_max_points=3000))
+    trained = start(root / "ns-train.log", "ns-train", "moisst-lite", "--data", rig, "--max-num-iterations", STEPS, "--machine.seed", SEED,
+                    "--vis", "tensorboard", "--viewer.quit-on-train-completion", "True", "--output-dir", root / "outputs", cwd=root)
+    calibrated = start(root / "calibrate.log", "moisst-calibrate", rig, "--output-dir", root / "calibrated", "--max-num-iterations", STEPS,
+                       "--seed", SEED, "--threads", 1)
+    assert trained.wait() == 0, (root / "ns-train.log").read_text()[-3000:]
+    assert calibrated.wait() in (0, 3), (root / "calibrate.log").read_text()[-3000:]  # 3: a sensor not converged (20 steps)
     (folder,) = (root / "outputs" / "rig" / "moisst-lite").iterdir()  # <output-dir>/<experiment>/<method>/<timestamp>
     return {"rig": rig, "run": folder, "out": root / "calibrated", "stages": tree_hash(folder / "lidar_first") + tree_hash(folder / "camera_registration")}
 

@@ -53,7 +53,7 @@ class BenchConfig:
 
 
 def make_bench_rig(out: Path, raw: dict, seed: int, layout: str, perturb: dict) -> Path:
-    """The moisst-synth rig of a (seed, layout, perturbation), generated once.
+    """The moisst-synth rig of a (seed, layout, perturbation), generated once (``raw["rig"]``: its settings).
 
     The scene, images and scans of a (seed, layout) are rendered once (``perturb none``); a perturbed variant
     hard-links them (copies across file systems) and gets the rig.json ``moisst-synth`` would write for that
@@ -61,10 +61,8 @@ def make_bench_rig(out: Path, raw: dict, seed: int, layout: str, perturb: dict) 
     """
     from moisst_ns.datasets.synth import SynthConfig, make_priors, make_rig, make_truth
 
-    rig = raw["rig"]
     t, r, d = (float(perturb[k]) for k in ("translation", "rotation", "time"))
-    config = SynthConfig(out=out / "rigs" / f"{layout}-s{seed}-base", seed=seed, layout=layout, width=rig["width"],
-                         height=rig["height"], frames=rig["frames"], perturb="none")
+    config = SynthConfig(out=out / "rigs" / f"{layout}-s{seed}-base", seed=seed, layout=layout, perturb="none", **raw["rig"])
     if not (config.out / "rig.json").is_file():
         if config.out.exists():
             shutil.rmtree(config.out)

@@ -49,6 +49,15 @@ def load_scenarios(path: Path) -> dict:
             raise BenchError(f"{path}: {key}: must be a positive integer, got {raw[key]!r}")
     if not raw["seeds"] or any(not (isinstance(s, list) and len(s) == 2 and isinstance(s[0], int) and s[1] in ("street", "plaza")) for s in raw["seeds"]):
         raise BenchError(f"{path}: seeds: must be a non-empty list of [seed, 'street' | 'plaza'] pairs")
+    from moisst_ns.datasets.synth import SynthConfig
+
+    settings = set(SynthConfig.__dataclass_fields__) - {"out", "seed", "layout", "perturb"}
+    for key in ("width", "height", "frames"):
+        if key not in raw["rig"]:
+            raise BenchError(f"{path}: rig.{key}: missing")
+    unknown = sorted(set(raw["rig"]) - settings)
+    if unknown:
+        raise BenchError(f"{path}: rig.{unknown[0]}: unknown moisst-synth setting")
     floor = raw.get("floor")
     if floor is not None:
         for key in ("steps", "register_steps", "depth_rays"):
