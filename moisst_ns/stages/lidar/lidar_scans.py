@@ -185,6 +185,57 @@ def load_scans(rig: Rig, sensor: str, traj: ReferenceTrajectory, config: LidarFi
                    np.concatenate(normals), np.concatenate(planar), np.concatenate(thickness), sources, files, deskewed, dropped)
 
 
+MOVER_SPEED = 1.5
+"""A point whose surface moves faster than this (metres per second, walking pace) between scans is on a mover."""
+MOVER_RADIUS = 1.5
+"""How far a point's surface may lie in the neighbouring scan to be judged, metres (farther: not judged, kept): a car
+15 m/s faster or slower than the rig moves this much between two scans 0.1 s apart."""
+
+
+def moving_points(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet) -> np.ndarray:
+    """The points that do not stay put: a point of scan ``k`` lies off the surface the scans before and after it see
+    there (the nearest point within ``MOVER_RADIUS``, planar and facing as the point's own surface, point to plane, all
+    placed with ``ext``) by more than ``MOVER_SPEED`` times the time between the two scans, in every neighbouring scan
+    that sees such a surface there. A
+    moving car's front and back move by their speed along their normal (0.4-1 m in 0.1 s at 4-10 m/s); a static
+    surface stays within its noise plus what an extrinsic error does over one scan's motion (a 5 deg rotation error
+    over 0.8 m of travel: 7 cm).
+
+    Args:
+        traj: the reference trajectory.
+        ext: the LiDAR's calibration (a prior's error moves static points by centimetres here, not decimetres).
+        scans: the LiDAR's scans, in time order.
+
+    Returns:
+        (num,) bool over ``scans.points``: True on a mover.
+    """
+    world, normals = np.zeros_like(scans.points), np.zeros_like(scans.normals)
+    for k in range(len(scans.stamps)):  # one scan at a time: a rotation per point for all of them would be the peak memory
+        part = scans.scan(k)
+        world[part] = place_points(traj, ext, scans.points[part], scans.times[part])
+        rot = trajectory_at(traj, scans.times[part], ext.time_offset)[0]
+        normals[part] = np.einsum("nij,nj->ni", rot, scans.normals[part] @ ext.rotation.T)
+    moving = np.zeros(len(world), dtype=bool)
+    for k in range(len(scans.stamps)):
+        here = scans.scan(k)
+        judged, off = np.zeros(here.stop - here.start, dtype=bool), np.ones(here.stop - here.start, dtype=bool)
+        for j in (k - 1, k + 1):
+            if not 0 <= j < len(scans.stamps):
+                continue
+            there = scans.scan(j)
+            index = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(world[there]))
+            index.knn_index()
+            found, dist2 = index.knn_search(o3d.core.Tensor(world[here]), 1)
+            near = found.numpy()[:, 0].astype(np.int64) + there.start
+            facing = np.abs(np.einsum("ni,ni->n", normals[near], normals[here])) >= 0.9  # the same surface (not the road under a car)
+            seen = (dist2.numpy()[:, 0] < MOVER_RADIUS**2) & scans.planar[near] & scans.planar[here] & facing
+            apart = np.abs(np.einsum("ni,ni->n", normals[near], world[here] - world[near]))
+            judged |= seen
+            off &= ~seen | (apart > MOVER_SPEED * abs(scans.stamps[j] - scans.stamps[k]))
+        moving[here] = judged & off
+    return moving
+
+
 def scan_pairs(traj: ReferenceTrajectory, scans: ScanSet, prior_offset: float, config: LidarFirstConfig) -> Tuple[np.ndarray, np.ndarray]:
     """Scan pairs ``(a, b)``, ``a < b``, at driving distances of 0.5, 1, 2, 4... m up to ``max_baseline``, and
     each pair's baseline (metres of the reference trajectory between the two scans' stamps)."""
