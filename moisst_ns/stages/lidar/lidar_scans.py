@@ -196,10 +196,9 @@ def moving_points(traj: ReferenceTrajectory, ext: Extrinsic, scans: ScanSet) -> 
     """The points that do not stay put: a point of scan ``k`` lies off the surface the scans before and after it see
     there (the nearest point within ``MOVER_RADIUS``, planar and facing as the point's own surface, point to plane, all
     placed with ``ext``) by more than ``MOVER_SPEED`` times the time between the two scans, in every neighbouring scan
-    that sees such a surface there. A
-    moving car's front and back move by their speed along their normal (0.4-1 m in 0.1 s at 4-10 m/s); a static
-    surface stays within its noise plus what an extrinsic error does over one scan's motion (a 5 deg rotation error
-    over 0.8 m of travel: 7 cm).
+    that sees such a surface there. A moving car's front and back move by their speed along their normal (0.4-1 m in
+    0.1 s at 4-10 m/s); a static surface stays within its noise plus what an extrinsic error does over one scan's
+    motion (a 5 deg rotation error over 0.8 m of travel: 7 cm).
 
     Args:
         traj: the reference trajectory.
