@@ -56,3 +56,22 @@ def test_a_parked_car_is_not_moving():
     traj, scans, on_car = street(car_speed=0.0)
     moving = moving_points(traj, Extrinsic(np.eye(3), np.zeros(3), 0.0), scans)
     assert not moving[on_car].any() and moving.mean() < 0.001, (moving[on_car].mean(), moving[~on_car].mean())
+
+
+def test_the_same_instant_placement_leaves_out_a_match_whose_line_of_sight_passes_a_mover():
+    """``lidar_instant._off_movers``: a match seen through the car's back (in the scan nearest its instant) is left out
+    with every field, one towards the wall beside it (3 deg past the car's edge) and one towards the road are kept;
+    with nothing moving, every match is kept."""
+    from moisst_ns.stages.lidar.lidar_instant import InstantPoints, _off_movers
+
+    traj, scans, on_car = street()
+    origin = np.array([8.0 * 0.2, 0.0, 0.0])  # the rig at the third scan, 0.2 s
+    edge = np.deg2rad(3.0) + np.arctan2(0.8, 12.8 - origin[0])  # the car's back spans y in [-0.8, 0.8] at x = 12.8
+    targets = np.array([[12.8, 0.0, -0.4], [12.8, 0.3, 0.0], [origin[0] + 28.4 * np.cos(edge), 28.4 * np.sin(edge), -0.4], [20.0, -3.0, -1.5]])
+    n = len(targets)
+    pts = InstantPoints(0.21, np.tile(origin, (n, 1)), targets - origin, np.arange(n, dtype=float), np.arange(2 * n, dtype=float).reshape(n, 2), 0)
+    ext = Extrinsic(np.eye(3), np.zeros(3), 0.0)
+    kept = _off_movers(traj, ext, scans, on_car, pts)
+    assert np.allclose(kept.ray, (targets - origin)[2:]) and kept.depth_sigma.tolist() == [2.0, 3.0]
+    assert kept.shift_gradient.tolist() == [[4.0, 5.0], [6.0, 7.0]] and kept.origin.shape == (2, 3)
+    assert len(_off_movers(traj, ext, scans, np.zeros_like(on_car), pts).ray) == n
