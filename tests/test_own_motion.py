@@ -186,6 +186,24 @@ def test_exact_tracks_on_a_steady_turn_give_the_rotation_and_say_the_lever_arm_a
     assert np.all(fit.sigma_baseline[:3] < 1e-6)  # the short and the long tracks, each fitted alone, agree on the rotation
 
 
+
+def test_the_resolution_part_of_own_tracks_is_half_the_change_from_keypoints_found_at_half_resolution():
+    """``fit_own_tracks(..., halved=)``: the same fit on the matches of keypoints found at 1/2 resolution, from its own
+    start; half the change of the corrections is the resolution part of sigma (``camera_guards.resolution_spread``),
+    which sigma then covers. Here the halved keypoints all sit 1 px (f = 200 px) to the right, a bias every track
+    shares, which moves the fit; the fit itself is the one without ``halved``, whose resolution part is zero."""
+    traj, rng = _trajectory(0.15, 1.0), np.random.default_rng(1)
+    matches, _ = _matches(traj, SIDE, 0.03, _street(1.0), np.arange(0.3, 2.0, 0.1), rng)
+    halved = replace(matches, xy_a=matches.xy_a + [1 / 200, 0.0], xy_b=matches.xy_b + [1 / 200, 0.0])
+    prior = _perturbed()
+    fit = fit_own_tracks(traj, matches, 200.0, prior, 0.11, OwnTracksConfig(), lambda s: None, halved=halved)
+    alone = fit_own_tracks(traj, halved, 200.0, prior, 0.11, OwnTracksConfig(), lambda s: None)
+    np.testing.assert_allclose(fit.sigma_resolution, np.abs(fit.theta - alone.theta) / 2, rtol=0, atol=1e-12)
+    assert fit.sigma_resolution.max() > 1e-3, fit.sigma_resolution
+    assert np.all(fit.sigma >= fit.sigma_resolution)
+    without = fit_own_tracks(traj, matches, 200.0, prior, 0.11, OwnTracksConfig(), lambda s: None)
+    assert np.all(without.sigma_resolution == 0) and np.all(without.theta == fit.theta)
+
 def test_own_tracks_name_weak_what_the_drive_turns_about_and_nothing_on_a_drive_that_rocks():
     """A camera placed by its own tracks sees its lever arm only through the drive's turns: on the steady turn about the
     reference's vertical the drive's own-motion observability names the lever arm and the offset weak (the fit's formal

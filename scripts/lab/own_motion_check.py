@@ -40,7 +40,8 @@ def main() -> None:
     prior, offset = np.asarray(start.T_ref_sensor[args.camera]), float(start.time_offset[args.camera])
     traj, matches = ReferenceTrajectory.of(rig), own_matches(rig, args.camera, OWN)
     if args.map == "none":
-        fit = fit_own_tracks(traj, matches, float(rig.sensors[args.camera].intrinsics["fl_x"]), prior, offset, TRACKS, print, args.camera)
+        fit = fit_own_tracks(traj, matches, float(rig.sensors[args.camera].intrinsics["fl_x"]), prior, offset, TRACKS, print, args.camera,
+                             halved=own_matches(rig, args.camera, OWN, downscale=2))
     else:
         world = lidar_map(rig, start, 0.05, 2.0, print) if args.map == "lidar" else feature_map(rig, start, FeatureMapConfig(patch_points=0), print)
         fit = fit_own_motion(traj, matches, MapSurface.of(world, OWN.normal_radius), prior, offset, OWN, print, args.camera)

@@ -10,7 +10,7 @@ orig = ot.fit_own_tracks
 def wrapped(*a, **k):
     r = orig(*a, **k)
     if r is not None:
-        for n in ("theta", "sigma_formal", "sigma_split", "sigma_baseline"):
+        for n in ("theta", "sigma_formal", "sigma_split", "sigma_baseline", "sigma_resolution"):
             v = np.asarray(getattr(r, n)); print("PARTS", n, "rot deg", np.round(np.rad2deg(v[:3]), 3).tolist(), "t cm", np.round(100 * v[3:6], 2).tolist(), "ms", round(1000 * v[6], 2))
     return r
 ot.fit_own_tracks = wrapped

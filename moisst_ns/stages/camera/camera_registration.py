@@ -199,7 +199,8 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
             log(f"[camera-registration] {name}: {why}; " + ("placing it by its own tracks on the trajectory" if own_motion else "it keeps its prior, not fitted"))
             if own_motion:  # against the trajectory alone
                 begun, own[name] = time.perf_counter(), own_matches(rig, name, OWN)
-                fit = fit_own_tracks(traj, own[name], float(rig.sensors[name].intrinsics["fl_x"]), results[name].prior, results[name].prior_offset, TRACKS, log, name)
+                fit = fit_own_tracks(traj, own[name], float(rig.sensors[name].intrinsics["fl_x"]), results[name].prior, results[name].prior_offset, TRACKS, log, name,
+                                     halved=own_matches(rig, name, OWN, downscale=2))
                 results[name] = own_motion_result(fit, results[name], config, log, begun, source)
                 if not results[name].kept_prior:  # what its own motion cannot fix on this drive
                     results[name] = replace(results[name], weak=weak_by_motion(traj, own[name], results[name].prior, results[name].prior_offset, log, name))

@@ -18,7 +18,7 @@ No nerfstudio import.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Callable, List, Optional, Tuple
 
 import numpy as np
@@ -132,8 +132,9 @@ class MapSurface:
         return found.numpy()[:, 0].astype(np.int64), np.sqrt(dist2.numpy()[:, 0])
 
 
-def own_matches(rig: Rig, name: str, config: OwnMotionConfig) -> OwnMatches:
-    """SIFT matches of ``name``'s frames with their next ``max_gap``, the essential matrix's RANSAC inliers of each pair.
+def own_matches(rig: Rig, name: str, config: OwnMotionConfig, downscale: int = 1) -> OwnMatches:
+    """SIFT matches of ``name``'s frames with their next ``max_gap``, the essential matrix's RANSAC inliers of each pair;
+    the keypoints found on the images shrunk ``downscale`` times (``sift_frames``).
 
     Raises:
         CameraStageError: an image cannot be read (``sift_frames``).
@@ -143,7 +144,7 @@ def own_matches(rig: Rig, name: str, config: OwnMotionConfig) -> OwnMatches:
     spec = rig.sensors[name]
     frames = sorted(rig.frames_of(name), key=lambda f: f.timestamp)
     K, dist = camera_matrix(spec.intrinsics), distortion(spec.intrinsics)
-    keys, descs = sift_frames(rig, frames, config.features)
+    keys, descs = sift_frames(rig, frames, config.features, downscale)
     first = np.cumsum([0] + [len(k) for k in keys])  # each frame's first keypoint's number
     parts = []
     for a in range(len(frames)):
@@ -213,11 +214,14 @@ class OwnMotionFit:
     """Held-back loss at the prior: mean distance of the held-back frames' points to the map, capped at the last coarse
     radius, metres; by own tracks: mean angle of the held-back tracks' observations to their points, capped, pixels."""
     loss_estimate: float
+    sigma_resolution: Float[np.ndarray, "7"] = field(default_factory=lambda: np.zeros(7))
+    """By own tracks: ``camera_guards.resolution_spread`` of the fit and the same fit on keypoints found at 1/2
+    resolution (a bias of the keypoints that every track shares); on the map: zeros."""
 
     @property
     def sigma(self) -> Float[np.ndarray, "7"]:
-        """The fit's sigma: the largest of its formal, split-half, baseline and convergence parts."""
-        return np.fmax.reduce([self.sigma_formal, self.sigma_split, self.sigma_baseline, self.sigma_convergence])
+        """The fit's sigma: the largest of its formal, split-half, baseline, convergence and resolution parts."""
+        return np.fmax.reduce([self.sigma_formal, self.sigma_split, self.sigma_baseline, self.sigma_convergence, self.sigma_resolution])
 
 
 def _solve(theta: np.ndarray, matches: OwnMatches, surface: MapSurface, radius: float, parallax: float, traj, prior, offset):
@@ -335,4 +339,4 @@ def own_motion_result(fit: Optional[OwnMotionFit], kept: CameraResult, config: C
     return replace(kept, estimate=pose, time_offset=offset, sigma=fit.sigma.tolist(), cost_prior=fit.loss_prior, cost_estimate=fit.loss_estimate,
                    kept_prior=False, note="", sigma_formal=fit.sigma_formal.tolist(), sigma_split=fit.sigma_split.tolist(), blind=[], significance=[],
                    start=f"own motion ({what}; {'the photometric fit' if on_map else 'alone'}: {kept.note or 'held-back check'})",
-                   sigma_resolution=[], sigma_convergence=fit.sigma_convergence.tolist(), held_there=False, wall_s=kept.wall_s + time.perf_counter() - begun)
+                   sigma_resolution=[] if on_map else fit.sigma_resolution.tolist(), sigma_convergence=fit.sigma_convergence.tolist(), held_there=False, wall_s=kept.wall_s + time.perf_counter() - begun)

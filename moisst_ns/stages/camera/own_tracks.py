@@ -31,7 +31,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.camera.camera_guards import SCALE
+from moisst_ns.stages.camera.camera_guards import SCALE, resolution_spread
 from moisst_ns.stages.camera.own_motion import DeltaGridConfig, OwnMatches, OwnMotionFit, observation_poses
 from moisst_ns.stages.trust.drive_observability import analyse_drive
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
@@ -94,6 +94,13 @@ def tracks(matches: OwnMatches) -> Tracks:
     return out.subset(~np.isin(label, clash))
 
 
+def _long_tracks(matches: OwnMatches) -> Tracks:
+    """``tracks`` of ``matches`` that have 3 views or more."""
+    every = tracks(matches)
+    views = np.bincount(every.track, minlength=every.count)
+    return every.subset(views[every.track] >= 3)
+
+
 def sampson_px(theta, matches: OwnMatches, focal: float, traj, prior, offset) -> Float[np.ndarray, "n"]:
     """Each match's signed Sampson distance to the epipolar geometry of its two poses at ``theta``, pixels."""
     poses = [observation_poses(theta, f, r, matches.stamps, matches.readout, matches.height, traj, prior, offset)
@@ -148,7 +155,7 @@ def _loss(theta, obs: Tracks, focal, cap, args) -> float:
 
 def fit_own_tracks(traj: ReferenceTrajectory, matches: OwnMatches, focal: float, prior: Float[np.ndarray, "4 4"], prior_offset: float,
                    config: OwnTracksConfig, log: Callable[[str], None] = print, sensor: str = "camera",
-                   start: Optional[np.ndarray] = None) -> Optional[OwnMotionFit]:
+                   start: Optional[np.ndarray] = None, halved: Optional[OwnMatches] = None) -> Optional[OwnMotionFit]:
     """The camera's 7 corrections from its own matches against the reference trajectory (module docstring).
 
     Args:
@@ -159,15 +166,16 @@ def fit_own_tracks(traj: ReferenceTrajectory, matches: OwnMatches, focal: float,
         config: settings.
         log: where progress lines go; sensor: the camera's name for them.
         start: corrections to refine from by the track solves alone (a drawn trajectory's refit), None: the delta grid.
+        halved: the camera's matches on keypoints found at 1/2 resolution (``own_matches(..., downscale=2)``): the
+            same fit on them, from its own start, gives the resolution part of sigma; None (or too few tracks there):
+            no such part.
 
     Returns:
         The fit (``points``: tracks of 3 views or more kept; losses in pixels), or None when fewer than
         ``config.min_tracks`` such tracks are kept.
     """
     args = (traj, prior, prior_offset)
-    every = tracks(matches)
-    views = np.bincount(every.track, minlength=every.count)
-    every = every.subset(views[every.track] >= 3)
+    every = _long_tracks(matches)
     held = every.track % config.hold_out == config.hold_out - 1
     fit, back = every.subset(~held), every.subset(held)
     if start is None:
@@ -195,9 +203,11 @@ def fit_own_tracks(traj: ReferenceTrajectory, matches: OwnMatches, focal: float,
     short = (last - first <= config.short_span)[kept.track]
     spans = [_refine(theta, kept.subset(h), focal, config, args, config.thresholds_px[-1:])[0] for h in (short, ~short)]
     baseline = np.max([np.abs(h - theta) for h in spans], axis=0)
+    half = None if halved is None else fit_own_tracks(traj, halved, focal, prior, prior_offset, config, lambda _: None, sensor)
+    resolution = np.zeros(7) if half is None else resolution_spread({1: theta, 2: half.theta})
     cap = config.thresholds_px[0]
     result = OwnMotionFit(theta, np.asarray(formal), split, baseline, np.zeros(7), kept.count, _loss(np.zeros(7), back, focal, cap, args),
-                          _loss(theta, back, focal, cap, args))
+                          _loss(theta, back, focal, cap, args), resolution)
     log(f"[own-tracks] {sensor}: {kept.count} tracks agree within {config.thresholds_px[-1]:g} px (median {np.median(np.abs(pixels)):.3f} px); "
         f"held-back loss {result.loss_estimate:.3f} px (prior {result.loss_prior:.3f} px)")
     return result
