@@ -783,9 +783,9 @@ def test_the_trajectorys_stated_errors_enter_an_accepted_cameras_sigma_not_its_e
 
 def test_keypoints_found_at_half_resolution_are_given_in_the_full_images_pixels(monkeypatch):
     """``sift_frames(..., downscale=2)`` finds the keypoints on the image shrunk by averaging 2x2 pixels and gives them
-    in the full image's pixels as ``sift`` gives them on the full image: blobs at known sub-pixel places are found
-    0.25 px right of and below their centres (OpenCV's SIFT, opencv/opencv#23123) within 0.06 px at both resolutions
-    (0.5 px off at the half resolution without the shift of the pixel centres, 0.25 px without its bias's)."""
+    in the full image's pixels: blobs at known sub-pixel places are found at their centres within 0.06 px at both
+    resolutions (0.25 px right of and below them without ``sift``'s correction of OpenCV's bias, opencv/opencv#23123;
+    0.25-0.5 px off at the half resolution without the shift of the pixel centres)."""
     import types
 
     import moisst_ns.stages.camera.camera_map as camera_map
@@ -797,5 +797,5 @@ def test_keypoints_found_at_half_resolution_are_given_in_the_full_images_pixels(
     frame = types.SimpleNamespace(sensor="cam", file_path="f.png")
     for downscale in (1, 2):
         keys = camera_map.sift_frames(None, [frame], 100, downscale)[0][0]
-        nearest = np.linalg.norm(keys[None] - (centres[:, None] + 0.25), axis=2).min(axis=1)
+        nearest = np.linalg.norm(keys[None] - centres[:, None], axis=2).min(axis=1)
         assert np.all(nearest < 0.06), (downscale, nearest)

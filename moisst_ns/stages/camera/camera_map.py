@@ -113,17 +113,17 @@ def triangulate(proj_a: Float[np.ndarray, "n 3 4"], proj_b: Float[np.ndarray, "n
 
 def sift(image: UInt8[np.ndarray, "h w"], features: int) -> Tuple[Float[np.ndarray, "k 2"], np.ndarray]:
     """SIFT keypoints of an 8-bit grey image (OpenCV pixel convention, centre of column ``i`` at ``i``) and their
-    descriptors ((0, 128) when there are none)."""
+    descriptors ((0, 128) when there are none). OpenCV's SIFT puts its keypoints 0.25 px right of and below the
+    feature (opencv/opencv#23123: the octave -1 upsampling's half-pixel shift, halved); they are moved back."""
     import cv2
 
     kp, desc = cv2.SIFT_create(nfeatures=features).detectAndCompute(image, None)
-    return np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2), desc if desc is not None else np.zeros((0, 128), np.float32)
+    return np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2) - 0.25, desc if desc is not None else np.zeros((0, 128), np.float32)
 
 
 def sift_frames(rig: Rig, frames: Sequence, features: int, downscale: int = 1) -> Tuple[List[np.ndarray], List[np.ndarray]]:
     """``sift`` of each frame's grey image (``lidar_map.read_grey``), found on the image shrunk ``downscale`` times
-    (pixel areas averaged): keypoints (in the full image's pixels, as ``sift`` gives them on the full image: OpenCV's
-    SIFT puts them 0.25 of its image's pixel right of and below the feature, opencv/opencv#23123) and descriptors.
+    (pixel areas averaged): keypoints (in the full image's pixels) and descriptors.
 
     Raises:
         CameraStageError: an image cannot be read.
@@ -134,7 +134,7 @@ def sift_frames(rig: Rig, frames: Sequence, features: int, downscale: int = 1) -
         return image if downscale == 1 else cv2.resize(image, (image.shape[1] // downscale, image.shape[0] // downscale), interpolation=cv2.INTER_AREA)
 
     found = [sift(shrunk(read_grey(rig, frame.sensor, frame.file_path)), features) for frame in frames]
-    return [downscale * (k - 0.25) + (downscale - 1) / 2 + 0.25 for k, _ in found], [d for _, d in found]
+    return [downscale * k + (downscale - 1) / 2 for k, _ in found], [d for _, d in found]
 
 
 def ratio_matches(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> Tuple[np.ndarray, np.ndarray]:
