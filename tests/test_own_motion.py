@@ -186,7 +186,6 @@ def test_exact_tracks_on_a_steady_turn_give_the_rotation_and_say_the_lever_arm_a
     assert np.all(fit.sigma_baseline[:3] < 1e-6)  # the short and the long tracks, each fitted alone, agree on the rotation
 
 
-
 def test_the_resolution_part_of_own_tracks_is_half_the_change_from_keypoints_found_at_half_resolution():
     """``fit_own_tracks(..., halved=)``: the same fit on the matches of keypoints found at 1/2 resolution, from its own
     start; half the change of the corrections is the resolution part of sigma (``camera_guards.resolution_spread``),
@@ -203,6 +202,7 @@ def test_the_resolution_part_of_own_tracks_is_half_the_change_from_keypoints_fou
     assert np.all(fit.sigma >= fit.sigma_resolution)
     without = fit_own_tracks(traj, matches, 200.0, prior, 0.11, OwnTracksConfig(), lambda s: None)
     assert np.all(without.sigma_resolution == 0) and np.all(without.theta == fit.theta)
+
 
 def test_own_tracks_name_weak_what_the_drive_turns_about_and_nothing_on_a_drive_that_rocks():
     """A camera placed by its own tracks sees its lever arm only through the drive's turns: on the steady turn about the

@@ -94,11 +94,29 @@ def tracks(matches: OwnMatches) -> Tracks:
     return out.subset(~np.isin(label, clash))
 
 
-def _long_tracks(matches: OwnMatches) -> Tracks:
-    """``tracks`` of ``matches`` that have 3 views or more."""
+def _fitted(matches: OwnMatches, focal: float, config: OwnTracksConfig, args: tuple, log: Callable[[str], None], sensor: str,
+            start: Optional[np.ndarray]) -> Optional[Tuple[np.ndarray, Tracks, object, Tracks]]:
+    """``fit_own_tracks``' corrections alone: its tracks of 3 views or more, every ``hold_out``-th held back, refined
+    from ``start`` (None: the epipolar start over the delta grid). Returns (corrections, the fitted tracks kept, the
+    solution, the held-back tracks), or None when fewer than ``config.min_tracks`` are kept."""
     every = tracks(matches)
     views = np.bincount(every.track, minlength=every.count)
-    return every.subset(views[every.track] >= 3)
+    every = every.subset(views[every.track] >= 3)
+    held = every.track % config.hold_out == config.hold_out - 1
+    fit, back = every.subset(~held), every.subset(held)
+    if start is None:
+        coarse, best = matches.subset(slice(None, None, max(1, len(matches.frame_a) // config.coarse_matches))), None
+        for theta in config.starts():
+            solution = _solve(lambda x: sampson_px(x, coarse, focal, *args), theta)
+            if best is None or solution.cost < best.cost:
+                best = solution
+        log(f"[own-tracks] {sensor}: epipolar start at delta {best.x[6] * 1000:+.1f} ms from the prior, median {np.median(np.abs(best.fun)):.3f} px")
+        start = _solve(lambda x: sampson_px(x, matches, focal, *args), best.x).x
+    theta, kept, solution = _refine(np.asarray(start, dtype=np.float64), fit, focal, config, args)
+    if solution is None or kept.count < config.min_tracks:
+        log(f"[own-tracks] {sensor}: {kept.count} tracks of 3 views or more agree (the fit needs {config.min_tracks}): not placed")
+        return None
+    return theta, kept, solution, back
 
 
 def sampson_px(theta, matches: OwnMatches, focal: float, traj, prior, offset) -> Float[np.ndarray, "n"]:
@@ -175,21 +193,10 @@ def fit_own_tracks(traj: ReferenceTrajectory, matches: OwnMatches, focal: float,
         ``config.min_tracks`` such tracks are kept.
     """
     args = (traj, prior, prior_offset)
-    every = _long_tracks(matches)
-    held = every.track % config.hold_out == config.hold_out - 1
-    fit, back = every.subset(~held), every.subset(held)
-    if start is None:
-        coarse, best = matches.subset(slice(None, None, max(1, len(matches.frame_a) // config.coarse_matches))), None
-        for theta in config.starts():
-            solution = _solve(lambda x: sampson_px(x, coarse, focal, *args), theta)
-            if best is None or solution.cost < best.cost:
-                best = solution
-        log(f"[own-tracks] {sensor}: epipolar start at delta {best.x[6] * 1000:+.1f} ms from the prior, median {np.median(np.abs(best.fun)):.3f} px")
-        start = _solve(lambda x: sampson_px(x, matches, focal, *args), best.x).x
-    theta, kept, solution = _refine(np.asarray(start, dtype=np.float64), fit, focal, config, args)
-    if solution is None or kept.count < config.min_tracks:
-        log(f"[own-tracks] {sensor}: {kept.count} tracks of 3 views or more agree (the fit needs {config.min_tracks}): not placed")
+    found = _fitted(matches, focal, config, args, log, sensor, start)
+    if found is None:
         return None
+    theta, kept, solution, back = found
     pixels = solution.fun
     weights = (1 + pixels ** 2) ** -0.25  # the square root of soft L1's IRLS weight (f_scale 1 px)
     formal = least_squares_sigma(solution.jac * weights[:, None], pixels * weights, np.repeat(kept.frame, 2)).sigma
@@ -203,8 +210,8 @@ def fit_own_tracks(traj: ReferenceTrajectory, matches: OwnMatches, focal: float,
     short = (last - first <= config.short_span)[kept.track]
     spans = [_refine(theta, kept.subset(h), focal, config, args, config.thresholds_px[-1:])[0] for h in (short, ~short)]
     baseline = np.max([np.abs(h - theta) for h in spans], axis=0)
-    half = None if halved is None else fit_own_tracks(traj, halved, focal, prior, prior_offset, config, lambda _: None, sensor)
-    resolution = np.zeros(7) if half is None else resolution_spread({1: theta, 2: half.theta})
+    half = None if halved is None else _fitted(halved, focal, config, args, lambda _: None, sensor, None)
+    resolution = np.zeros(7) if half is None else resolution_spread({1: theta, 2: half[0]})
     cap = config.thresholds_px[0]
     result = OwnMotionFit(theta, np.asarray(formal), split, baseline, np.zeros(7), kept.count, _loss(np.zeros(7), back, focal, cap, args),
                           _loss(theta, back, focal, cap, args), resolution)
