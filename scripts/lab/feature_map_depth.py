@@ -5,14 +5,18 @@ more than 0.5 m off are left out), signed (negative: nearer than the surface), o
 
 Usage: PYTHONPATH=. .venv/bin/python scripts/lab/feature_map_depth.py RIG
 """
-import sys
 import json
+import sys
 from pathlib import Path
-import numpy as np, torch
-from moisst_ns.rig.format import Calibration, load_calibration, load_rig
-from moisst_ns.rig.geometry import ReferenceTrajectory
+
+import numpy as np
+import torch
+
 from moisst_ns.datasets.synth import SynthConfig, build_scene
+from moisst_ns.rig.format import load_calibration, load_rig
+from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.stages.camera.camera_map import FeatureMapConfig, feature_map
+
 folder = Path(sys.argv[1])
 rig, truth = load_rig(folder), load_calibration(folder / "ground_truth.json")
 meta = json.loads((folder / "rig.json").read_text())["metadata"]
@@ -30,7 +34,8 @@ depth = np.einsum("nfi,fi->nf", rel, fwd)
 dist = np.linalg.norm(rel, axis=2)
 cosang = depth / dist
 score = np.where(cosang > np.cos(np.deg2rad(25)), dist, np.inf)
-f = np.argmin(score, axis=1); ok = np.isfinite(score[np.arange(len(world)), f])
+f = np.argmin(score, axis=1)
+ok = np.isfinite(score[np.arange(len(world)), f])
 o, w = centres[f[ok]], world[ok]
 d = np.linalg.norm(w - o, axis=1)
 hit = scene.cast(o, (w - o) / d[:, None])["t_hit"]
@@ -41,4 +46,5 @@ print(f"{len(world)} points, {good.sum()} checked; signed depth error median {np
       f"relative median {np.median(rel_err)*1e3:.3f} per mille; |err| median {np.median(np.abs(err))*1e3:.2f} mm")
 for lo, hi in [(0, 5), (5, 10), (10, 20), (20, 60)]:
     m = (hit[good] >= lo) & (hit[good] < hi)
-    if m.sum(): print(f"  {lo}-{hi} m: {m.sum()} points, median {np.median(err[m])*1e3:.2f} mm ({np.median(rel_err[m])*1e3:.3f} per mille)")
+    if m.sum():
+        print(f"  {lo}-{hi} m: {m.sum()} points, median {np.median(err[m])*1e3:.2f} mm ({np.median(rel_err[m])*1e3:.3f} per mille)")

@@ -5,7 +5,7 @@ GAP=N in the environment matches each frame with its next N frames instead of ``
 
 Usage: PYTHONPATH=. .venv/bin/python scripts/lab/own_tracks_parts.py RIG CAMERA --map none
 """
-import sys, runpy, numpy as np
+import os, sys, runpy, numpy as np
 import moisst_ns.stages.camera.own_tracks as ot
 orig = ot.fit_own_tracks
 def wrapped(*a, **k):
@@ -16,7 +16,6 @@ def wrapped(*a, **k):
     return r
 ot.fit_own_tracks = wrapped
 import moisst_ns.stages.camera.own_motion as om
-import os
 if "GAP" in os.environ:
     om.OWN.max_gap = int(os.environ["GAP"])
 sys.argv = ["own_motion_check.py"] + sys.argv[1:]
