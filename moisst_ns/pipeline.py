@@ -111,7 +111,7 @@ class MoisstPipeline(VanillaPipeline):
         """After the last step: ``calibration.json`` (the prior kept where the held-back loss says the estimate is no
         better), ``summary.json``, the report and the verdicts, into ``run.out``."""
         from moisst_ns.rig.calibration import calibration_report_errors
-        from moisst_ns.stages.trust.drive_observability import drive_json
+        from moisst_ns.stages.trust.observability import drive_json
         from moisst_ns.uncertainty import assess_run
 
         run, wall = self.stage_run, time.time() - self._started

@@ -134,7 +134,7 @@ def prepare_stages(pipeline, out: Path, seed: int, resume_from: Optional[Path]) 
     ``pipeline`` (``apply_stage_results``), then seed again: the NeRF starts as if no stage had drawn a number."""
     from moisst_ns.rig.format import Calibration, load_calibration, load_rig
     from moisst_ns.stages.lidar.lidar_instant import pairs_with_reference
-    from moisst_ns.stages.trust.drive_observability import analyse_rig_drive, drive_table
+    from moisst_ns.stages.trust.observability import analyse_rig_drive, drive_table
 
     dataparser = pipeline.datamanager.dataparser
     dataparser.data = Path(pipeline.datamanager.data or dataparser.data)  # as the datamanager will

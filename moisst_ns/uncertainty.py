@@ -198,7 +198,7 @@ def assess_run(pipeline, estimate, stage: Optional[dict], drive: list, moving: D
         estimate: the NeRF's estimate (``Calibration``).
         stage: ``{"sensors": ...}`` of the sensors the NeRF held at a stage's estimate (LiDAR-first: formal sigma
             and weak parameters; camera registration: sigma and held-back costs), or None.
-        drive: ``stages.drive_observability.analyse_rig_drive`` results.
+        drive: ``stages.trust.observability.analyse_rig_drive`` results.
         moving: sensors still moving (name -> spread).
         hit: sensors that ran into a bound (name -> bounds).
         seed: seed of the held-back pass's pixel draws; None skips it (no sigma for the NeRF's sensors).

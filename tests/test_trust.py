@@ -12,7 +12,7 @@ import torch
 from moisst_ns.rig.format import Calibration, RigFormatError, load_calibration
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import SensorTrust, decide_verdict
-from moisst_ns.stages.trust.drive_observability import analyse_drive, drive_table
+from moisst_ns.stages.trust.observability import analyse_drive, drive_table
 from moisst_ns.stages.trust.uncertainty_math import inherited_sigma, least_squares_sigma
 
 DT = 0.1

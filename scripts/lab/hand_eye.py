@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
 from moisst_ns.stages.camera.camera_map import camera_matrix, distortion
-from moisst_ns.stages.trust.drive_observability import analyse_drive
+from moisst_ns.stages.trust.observability import analyse_drive
 from moisst_ns.stages.camera.feature_start import _sift
 from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, PARAMETERS, TEST_STEPS
 

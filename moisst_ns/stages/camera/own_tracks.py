@@ -33,7 +33,7 @@ from scipy.sparse.csgraph import connected_components
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.stages.camera.camera_guards import SCALE, resolution_spread
 from moisst_ns.stages.camera.own_motion import DeltaGridConfig, OwnMatches, OwnMotionFit, observation_poses
-from moisst_ns.stages.trust.drive_observability import analyse_drive
+from moisst_ns.stages.trust.observability import analyse_drive
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
 
@@ -226,7 +226,7 @@ TRACKS = OwnTracksConfig()  # the fit's settings
 def weak_by_motion(traj: ReferenceTrajectory, matches: OwnMatches, prior: Float[np.ndarray, "4 4"], prior_offset: float,
                    log: Callable[[str], None] = print, sensor: str = "camera") -> List[str]:
     """The parameters a camera placed by its own tracks cannot have fixed on this drive: those the drive's motion does
-    not separate in the relative model of ``drive_observability.analyse_drive`` (its own motion against the
+    not separate in the relative model of ``observability.analyse_drive`` (its own motion against the
     trajectory's, as these tracks see it: a planar drive leaves the vertical lever arm weak), whatever the fit's sigma.
 
     Args:
