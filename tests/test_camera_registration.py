@@ -306,7 +306,8 @@ def test_typical_error_significance_tells_the_side_cameras_blind_directions(rig_
     reference camera's view) by a typical prior error raises its held-back cost well beyond three standard errors over
     the frames; the side camera, which pairs almost only with its own frames, does not tell a 10 cm lateral lever arm or
     a 1 deg roll apart (measured 0.4 and 0.4 with own partners 3 m apart, 0.1 and 0.5 at 1.5 m), and an inactive correction is reported as inf."""
-    from moisst_ns.stages.camera.camera_guards import PARAMETERS, typical_error_significance
+    from moisst_ns.stages.camera.camera_guards import typical_error_significance
+    from moisst_ns.stages.trust.observability import SOLVER_NAMES
     from moisst_ns.stages.camera.lidar_map import lidar_map
     from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 
@@ -320,7 +321,7 @@ def test_typical_error_significance_tells_the_side_cameras_blind_directions(rig_
         problem = Registration(traj, world, CameraFrames.of(rig, name, [1]), reference, truth, config)
         active = np.ones(7, dtype=bool)
         active[6] = name == "cam_front_right"
-        significance[name] = dict(zip(PARAMETERS, typical_error_significance(problem, np.zeros(7), active, 1, config)))
+        significance[name] = dict(zip(SOLVER_NAMES, typical_error_significance(problem, np.zeros(7), active, 1, config)))
     assert min(significance["cam_front_right"].values()) > 1.5, significance
     assert significance["cam_left"]["y"] < 1.0 and significance["cam_left"]["roll"] < 1.0, significance
     assert significance["cam_left"]["time_offset"] == np.inf

@@ -14,9 +14,10 @@ import numpy as np
 
 from moisst_ns.rig.format import load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.rig.trust import PARAMETERS as REPORT_ORDER, parameter_difference
+from moisst_ns.rig.trust import PARAMETERS, parameter_difference
 from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
-from moisst_ns.stages.camera.camera_guards import PARAMETERS, points_per_frame, solve, subset
+from moisst_ns.stages.camera.camera_guards import points_per_frame, solve, subset
+from moisst_ns.stages.trust.observability import SOLVER_NAMES
 from moisst_ns.stages.camera.camera_map import FeatureMapConfig, feature_map
 from moisst_ns.stages.camera.lidar_map import pyramid_factors
 from moisst_ns.stages.camera.photometric import CameraFrames, Registration
@@ -39,8 +40,8 @@ def main() -> None:
         theta, active = np.zeros(7), np.ones(7, dtype=bool)
         error = np.asarray(parameter_difference(np.asarray(est.T_ref_sensor[name]), est.time_offset[name],
                                                 np.asarray(truth.T_ref_sensor[name]), truth.time_offset[name]))
-        to_truth = error[[REPORT_ORDER.index(p) for p in PARAMETERS]]  # the correction that would reach the truth
-        print(f"{name}: the correction to the truth ({', '.join(PARAMETERS)}; deg, cm, ms):", np.round(to_truth * UNITS, 3))
+        to_truth = error[[PARAMETERS.index(p) for p in SOLVER_NAMES]]  # the correction that would reach the truth
+        print(f"{name}: the correction to the truth ({', '.join(SOLVER_NAMES)}; deg, cm, ms):", np.round(to_truth * UNITS, 3))
         pairs = problem.pairs(theta, finest, points_per_frame(config, finest, True))
         half = len(camera.stamps) // 2
         depth = problem.model.camera_points(theta, pairs.points, pairs.frame_a)[:, 2]

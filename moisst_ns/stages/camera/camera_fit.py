@@ -12,13 +12,13 @@ from typing import Callable, List, Optional, Sequence, Tuple
 import numpy as np
 
 from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
-from moisst_ns.stages.camera.camera_guards import (PARAMETERS, TYPICAL_ERROR, bounds, convergence_tail, held_back_check, points_per_frame,
-                                                   resolution_spread, solve, split_half_spread, typical_error_significance)
+from moisst_ns.stages.camera.camera_guards import (bounds, convergence_tail, held_back_check, points_per_frame, resolution_spread, solve,
+                                                   split_half_spread, typical_error_significance)
 from moisst_ns.stages.camera.camera_result import CameraResult, corrected as _corrected
 from moisst_ns.stages.camera.feature_start import FeatureStart
 from moisst_ns.stages.camera.lidar_map import NoOverlapError
 from moisst_ns.stages.camera.photometric import PairSet, Registration, robust_cost
-from moisst_ns.stages.trust.observability import huber_weights
+from moisst_ns.stages.trust.observability import SOLVER_NAMES, TYPICAL_ERROR, huber_weights
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
 
@@ -86,11 +86,11 @@ def _guarded(problem: Registration, config: CameraRegistrationConfig, floor_cost
     if config.estimate_readout:  # the readout's tail from the levels that fit it
         tail[7] = convergence_tail([h["correction"] for h in history if h["level"] in sorted(problem.camera.levels)[:READOUT_LEVELS]])[7]
     cost_pri, cost_est, better = held_back_check(problem, theta, finest, config)
-    at_bound = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (np.abs(theta[:7]) >= 0.999 * bounds(config)))]
+    at_bound = [SOLVER_NAMES[i] for i in np.flatnonzero(active[:7] & (np.abs(theta[:7]) >= 0.999 * bounds(config)))]
     ratio = history[-1]["cost"] / floor_cost if floor_cost else 0.0
-    undetermined = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (apart[:7] > config.max_split_half * TYPICAL_ERROR))]
+    undetermined = [SOLVER_NAMES[i] for i in np.flatnonzero(active[:7] & (apart[:7] > config.max_split_half * TYPICAL_ERROR))]
     significance = typical_error_significance(problem, theta, active, finest, config) if config.min_significance > 0 else np.full(7, np.inf)
-    blind = [PARAMETERS[i] for i in np.flatnonzero(active[:7] & (significance < config.min_significance))]
+    blind = [SOLVER_NAMES[i] for i in np.flatnonzero(active[:7] & (significance < config.min_significance))]
     kept = not better or bool(at_bound) or ratio > config.max_cost_ratio or bool(undetermined) or bool(blind)
     prior = problem.model.prior.numpy()
     pose, offset = (prior, problem.model.prior_offset) if kept else _corrected(prior, problem.model.prior_offset, theta)

@@ -19,12 +19,9 @@ from scipy.optimize import least_squares
 
 from moisst_ns.rig.format import Calibration
 from moisst_ns.rig.geometry import ReferenceTrajectory
-from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, TYPICAL_ERROR, PARAMETERS as REPORT_ORDER  # noqa: F401 (TYPICAL_ERROR re-exported)
+from moisst_ns.stages.trust.observability import TYPICAL_ERROR
 from moisst_ns.stages.camera.photometric import CameraFrames, PairSet, Registration, huber_costs, robust_cost
 
-PARAMETERS = tuple(REPORT_ORDER[i] for i in JACOBIAN_ORDER)  # roll pitch yaw x y z time_offset (the order is its own inverse)
-"""The corrections in solver order (rotation about the camera's own axes, lever arm in the reference frame, delta);
-with ``estimate_readout`` an 8th, the readout time's correction (seconds)."""
 SCALE = np.r_[[np.deg2rad(0.5)] * 3, [0.05] * 3, 0.005, 0.005]
 """The solver's ``x_scale`` per correction (rad, m, s, and s for the readout)."""
 

@@ -33,7 +33,7 @@ from moisst_ns.stages.camera.own_motion import OWN, MapSurface, OwnMatches, fit_
 from moisst_ns.stages.camera.own_tracks import TRACKS, fit_own_tracks, weak_by_motion
 from moisst_ns.stages.camera.photometric import CameraFrames, Registration
 from moisst_ns.stages.lidar.lidar_placement import place_again, place_lidars, trajectory_turn
-from moisst_ns.stages.trust.observability import PARAMETERS as TRUST_ORDER, JACOBIAN_ORDER, UNITS
+from moisst_ns.stages.trust.observability import JACOBIAN_ORDER, PARAMETERS, UNITS
 
 START = FeatureStartConfig()  # the feature start's settings
 
@@ -109,7 +109,7 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
         part[list(JACOBIAN_ORDER)] = spread[name]  # PARAMETERS order -> the solver's
         sigma = np.fmax(np.asarray(r.sigma, dtype=np.float64), part)
         log(f"[camera-registration] {name}: the trajectory's stated errors ({config.trajectory_draws} draws, {time.perf_counter() - begun:.0f} s) move it by "
-            + ", ".join(f"{p} {v * u:.3g} {n}" for p, v, (u, n) in zip(TRUST_ORDER, spread[name], UNITS)) + " RMS")
+            + ", ".join(f"{p} {v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, spread[name], UNITS)) + " RMS")
         out[name] = replace(r, sigma=sigma.tolist(), sigma_trajectory=part.tolist())
     return out
 

@@ -31,8 +31,9 @@ from moisst_ns.rig.format import Rig
 from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig
 from moisst_ns.stages.camera.camera_result import CameraResult, corrected
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic, row_time
-from moisst_ns.stages.camera.camera_guards import PARAMETERS, SCALE, TYPICAL_ERROR, bounds, convergence_tail
+from moisst_ns.stages.camera.camera_guards import SCALE, bounds, convergence_tail
 from moisst_ns.stages.camera.camera_map import camera_matrix, distortion, ratio_matches, sift_frames, triangulate
+from moisst_ns.stages.trust.observability import SOLVER_NAMES, TYPICAL_ERROR
 from moisst_ns.stages.trust.uncertainty_math import least_squares_sigma
 
 
@@ -323,8 +324,8 @@ def own_motion_result(fit: Optional[OwnMotionFit], kept: CameraResult, config: C
     ``history`` stays the photometric fit's; ``begun``: when the fit began (``time.perf_counter``)."""
     on_map = source == "lidar"
     unit = "m" if on_map else "px"
-    apart = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(fit.sigma_split > config.max_split_half * TYPICAL_ERROR)]
-    beyond = [] if fit is None else [PARAMETERS[i] for i in np.flatnonzero(np.abs(fit.theta) >= 0.999 * bounds(config))]
+    apart = [] if fit is None else [SOLVER_NAMES[i] for i in np.flatnonzero(fit.sigma_split > config.max_split_half * TYPICAL_ERROR)]
+    beyond = [] if fit is None else [SOLVER_NAMES[i] for i in np.flatnonzero(np.abs(fit.theta) >= 0.999 * bounds(config))]
     why = (("its own matches do not lie on the map" if on_map else "its own tracks do not agree on the trajectory's poses") if fit is None else
            f"its own motion's held-back loss {fit.loss_estimate:.4g} {unit} is no lower than the prior's {fit.loss_prior:.4g} {unit}" if not fit.loss_estimate < fit.loss_prior else
            f"its own motion puts it beyond its bound on {', '.join(beyond)}" if beyond else

@@ -21,7 +21,7 @@ import torch
 from jaxtyping import Float
 
 from moisst_ns.rig.geometry import ReferenceTrajectory, calibrated_extrinsic
-from moisst_ns.rig.trust import PARAMETERS  # noqa: F401 (the one parameter order, re-exported)
+from moisst_ns.rig.trust import PARAMETERS  # the one parameter order (re-exported)
 
 JACOBIAN_ORDER = (3, 4, 5, 0, 1, 2, 6)
 """Column of each of ``PARAMETERS`` in a Jacobian ordered (rotation vector, translation, time offset)."""
@@ -29,6 +29,9 @@ TEST_STEPS = (0.10, 0.10, 0.10, np.deg2rad(1.0), np.deg2rad(1.0), np.deg2rad(1.0
 """A typical prior error per parameter: 10 cm, 1 degree, 10 ms."""
 TYPICAL_ERROR = np.asarray(TEST_STEPS)[list(JACOBIAN_ORDER)]
 """``TEST_STEPS`` in Jacobian (solver) order, rad, m, s (the order is its own inverse)."""
+SOLVER_NAMES = tuple(PARAMETERS[i] for i in JACOBIAN_ORDER)
+"""``PARAMETERS`` in Jacobian (solver) order: roll, pitch, yaw, x, y, z, time_offset; the camera stage's corrections
+(with ``estimate_readout`` an 8th, the readout time's, seconds)."""
 UNITS = ((100.0, "cm"),) * 3 + ((float(np.rad2deg(1.0)), "deg"),) * 3 + ((1000.0, "ms"),)
 """Display scale and unit of each of ``PARAMETERS`` (from m, rad, s)."""
 MIN_EFFECT = 0.002
