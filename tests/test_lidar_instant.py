@@ -11,7 +11,7 @@ from moisst_ns.datasets.kitti_raw import KittiRawConfig, convert
 from moisst_ns.rig.format import Calibration, load_calibration, load_rig
 from moisst_ns.rig.geometry import ReferenceTrajectory
 from moisst_ns.rig.trust import parameter_difference
-from moisst_ns.stages.lidar.lidar_instant import place_lidar
+from moisst_ns.stages.lidar.lidar_instant import place_lidar, shift_sigmas
 from moisst_ns.stages.lidar.lidar_placement import place_lidars, trajectory_turn
 from moisst_ns.stages.lidar.lidar_report import stage_sigma
 from moisst_ns.stages.lidar.lidar_scans import LidarFirstConfig, load_scans
@@ -168,6 +168,20 @@ def test_an_undetermined_parameter_is_taken_where_the_shared_instants_beat_the_m
         assert out["lidar"].taken == taken
         moved = np.asarray(calibration.T_ref_sensor["lidar"])[:3, 3] - T[:3, 3]
         np.testing.assert_allclose(moved, [0.03, 0.04, 0.05 if "z" in taken else 0.0], atol=1e-12)
+
+
+def test_a_pairs_shifts_take_the_cameras_sigma_and_are_free_where_it_is_not_finite():
+    """``shift_sigmas``: a camera 50 cm right of the reference camera, driving along its z at 8 m/s: the shift along
+    the baseline takes x's sigma, the other z's and the time offset's (8 m/s x 1 ms) in quadrature, exactly; free (inf)
+    without a sigma or where the lever arm's or the offset's is NaN or inf (on a straight drive a NaN there made the
+    placement's solve fail: numpy's SVD did not converge)."""
+    along, baseline = np.array([0.0, 0.0, 8.0]), np.array([0.5, 0.0, 0.0])
+    sigma = [0.001, 0.002, 0.003, 0.02, 0.03, 0.04, 0.001]  # rad x3, m x3, s
+    np.testing.assert_allclose(shift_sigmas(sigma, along, baseline), [0.02, np.hypot(0.04, 0.008)], rtol=1e-12)
+    for k, bad in ((5, float("nan")), (6, float("inf")), (3, float("nan"))):
+        assert np.all(np.isinf(shift_sigmas(sigma[:k] + [bad] + sigma[k + 1:], along, baseline)))
+    assert np.all(np.isinf(shift_sigmas(None, along, baseline)))
+    assert np.all(np.isfinite(shift_sigmas(sigma[:0] + [float("nan")] + sigma[1:], along, baseline)))  # a rotation's: not used
 
 
 def test_the_cameras_that_may_pair_with_the_reference_camera(tmp_path):

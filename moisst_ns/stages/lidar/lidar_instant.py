@@ -121,6 +121,27 @@ def shift_axes(baseline: Float[np.ndarray, "3"]) -> Float[np.ndarray, "2 3"]:
     return np.stack([along, axis / max(np.linalg.norm(axis), 1e-9)])
 
 
+def shift_sigmas(camera_sigma: Optional[Sequence[float]], along: Float[np.ndarray, "3"], baseline: Float[np.ndarray, "3"]) -> Float[np.ndarray, "2"]:
+    """The prior sigma of a camera pair's two shifts (``shift_axes``), metres: the camera's position sigma and, along
+    the drive, its time offset's.
+
+    Args:
+        camera_sigma: the camera's registration sigma (Jacobian order: rad, m, s), or None.
+        along: the velocity in the reference camera's frame, m/s.
+        baseline: the camera's position from the reference camera's, metres.
+
+    Returns:
+        Per shift; inf (free) without a sigma, or where its position's or offset's is not finite (not determined, or not
+        measured: a NaN there once made the placement's solve fail).
+    """
+    sig = np.full(7, np.inf) if camera_sigma is None else np.asarray(camera_sigma, dtype=np.float64)
+    if not np.isfinite(sig[3:7]).all():
+        return np.full(2, np.inf)
+    cov = np.diag(sig[3:6] ** 2) + sig[6] ** 2 * np.outer(along, along)
+    axes = shift_axes(baseline)
+    return np.sqrt(np.einsum("ij,jk,ik->i", axes, cov, axes))
+
+
 def pairs_with_reference(rig: Rig, calibration: Optional[Calibration] = None) -> List[str]:
     """The cameras ``calibration`` (default: the rig's priors) puts ``MIN_BASELINE`` or more from the reference camera:
     those that may place a LiDAR at the same instants (none when the reference sensor is not a camera)."""
@@ -284,7 +305,7 @@ def place_lidar(rig: Rig, calibration: Calibration, lidar: str, scans: ScanSet, 
         cameras: the cameras that may pair with the reference camera.
         log: where progress lines go.
         camera_sigma: per camera, its registration's sigma (Jacobian order: rad, m, s): the prior of its pair's shifts
-            (none: free).
+            (``shift_sigmas``; none: free).
     """
     traj = ReferenceTrajectory.of(rig)
     ref = np.asarray(calibration.T_ref_sensor[rig.reference_sensor], dtype=np.float64)
@@ -297,13 +318,8 @@ def place_lidar(rig: Rig, calibration: Calibration, lidar: str, scans: ScanSet, 
         return None
     rot, _, _, velocity = traj.pose_and_rates(np.array([p.time for p in sets]))
     along = np.mean(np.einsum("nji,nj->ni", rot, velocity), axis=0)
-    shift_sigma = np.full((len(usable), 2), np.inf)
-    for i, c in enumerate(usable):
-        if camera_sigma is not None and c in camera_sigma:  # its position's and, along the drive, its time offset's
-            sig = np.asarray(camera_sigma[c], dtype=np.float64)
-            cov = np.diag(sig[3:6] ** 2) + sig[6] ** 2 * np.outer(along, along)
-            axes = shift_axes(np.asarray(calibration.T_ref_sensor[c], dtype=np.float64)[:3, 3] - ref[:3, 3])
-            shift_sigma[i] = np.sqrt(np.einsum("ij,jk,ik->i", axes, cov, axes))
+    shift_sigma = np.stack([shift_sigmas(None if camera_sigma is None else camera_sigma.get(c), along,
+                                         np.asarray(calibration.T_ref_sensor[c], dtype=np.float64)[:3, 3] - ref[:3, 3]) for c in usable])
     T = np.asarray(calibration.T_ref_sensor[lidar], dtype=np.float64)
     start = Extrinsic(T[:3, :3].copy(), T[:3, 3].copy(), float(calibration.time_offset[lidar]))
     # a moving car is not where both sensors see it: the cameras of a pair and the sweep are milliseconds apart, and
