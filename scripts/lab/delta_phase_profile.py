@@ -40,7 +40,8 @@ def resampled(rig, phase: float, noise_cm: float, noise_deg: float):
     return replace(rig, trajectory_stamps=shifted, trajectory_positions=positions, trajectory_quats_xyzw=quats)
 
 
-def main() -> None:
+def from_arguments():
+    """The command line's camera, its rig (``--resample``: resampled) and the rig's truth."""
     parser = argparse.ArgumentParser()
     parser.add_argument("rig")
     parser.add_argument("camera")
@@ -48,18 +49,25 @@ def main() -> None:
     args = parser.parse_args()
     rig = load_rig(args.rig)
     truth = load_calibration(rig.root / "ground_truth.json")
-    if args.resample:
-        rig = resampled(rig, *args.resample)
+    return args.camera, resampled(rig, *args.resample) if args.resample else rig, truth
+
+
+def phase(rig, camera: str, offset: float) -> float:
+    """Where the camera's frames fall between the trajectory's samples (0: on them), median over the frames."""
+    stamps = np.array([f.timestamp for f in rig.frames_of(camera)]) + offset
+    return float(np.median(np.interp(stamps, rig.trajectory_stamps, np.arange(len(rig.trajectory_stamps))) % 1.0))
+
+
+def main() -> None:
+    camera, rig, truth = from_arguments()
     traj = ReferenceTrajectory.of(rig)
-    matches = own_matches(rig, args.camera, OWN)
-    T, offset = np.asarray(truth.T_ref_sensor[args.camera]), float(truth.time_offset[args.camera])
-    focal = float(rig.sensors[args.camera].intrinsics["fl_x"])
+    matches = own_matches(rig, camera, OWN)
+    T, offset = np.asarray(truth.T_ref_sensor[camera]), float(truth.time_offset[camera])
+    focal = float(rig.sensors[camera].intrinsics["fl_x"])
     obs = tracks(matches)
     views = np.bincount(obs.track, minlength=obs.count)
     obs = obs.subset(views[obs.track] >= 3)
-    stamps = np.array([f.timestamp for f in rig.frames_of(args.camera)]) + offset
-    phase = np.median(np.interp(stamps, rig.trajectory_stamps, np.arange(len(rig.trajectory_stamps))) % 1.0)
-    print(f"{len(matches.frame_a)} matches, {obs.count} tracks; the camera's frames at phase {phase:.2f} of the trajectory's "
+    print(f"{len(matches.frame_a)} matches, {obs.count} tracks; the camera's frames at phase {phase(rig, camera, offset):.2f} of the trajectory's "
           f"{1000 * np.median(np.diff(rig.trajectory_stamps)):.0f} ms samples")
     soft = lambda r: float(np.mean(2 * (np.sqrt(1 + r ** 2) - 1)))  # noqa: E731 (scipy's soft_l1, f_scale 1 px)
     for step in np.arange(-0.16, 0.161, 0.01):

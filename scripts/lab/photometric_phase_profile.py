@@ -11,7 +11,6 @@ Usage: .venv/bin/python scripts/lab/photometric_phase_profile.py RIG CAMERA [--r
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -20,9 +19,9 @@ import roma
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from delta_phase_profile import resampled  # noqa: E402
+from delta_phase_profile import from_arguments, phase  # noqa: E402
 
-from moisst_ns.rig.format import Calibration, load_calibration, load_rig  # noqa: E402
+from moisst_ns.rig.format import Calibration  # noqa: E402
 from moisst_ns.rig.geometry import ReferenceTrajectory  # noqa: E402
 from moisst_ns.stages.camera.camera_config import CameraRegistrationConfig  # noqa: E402
 from moisst_ns.stages.camera.camera_guards import points_per_frame  # noqa: E402
@@ -32,16 +31,8 @@ from moisst_ns.stages.camera.photometric import CameraFrames, Registration, hube
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("rig")
-    parser.add_argument("camera")
-    parser.add_argument("--resample", nargs=3, type=float, metavar=("PHASE", "CM", "DEG"))
-    args = parser.parse_args()
-    rig = load_rig(args.rig)
-    truth = load_calibration(rig.root / "ground_truth.json")
-    if args.resample:
-        rig = resampled(rig, *args.resample)
-    name, config = args.camera, CameraRegistrationConfig()
+    name, rig, truth = from_arguments()
+    config = CameraRegistrationConfig()
     calibration = Calibration.from_rig(rig)
     world = feature_map(rig, calibration, FeatureMapConfig(voxel=config.map_voxel), lambda s: None)
     factors = pyramid_factors(int(rig.sensors[name].intrinsics["w"]), config.min_width)
@@ -52,9 +43,7 @@ def main() -> None:
     at_truth = np.r_[rotation, true_T[:3, 3] - prior[:3, 3], truth.time_offset[name] - calibration.time_offset[name]]
     factor = min(factors)
     pairs = problem.pairs(at_truth, factor, points_per_frame(config, factor, True))
-    stamps = np.array([f.timestamp for f in rig.frames_of(name)]) + truth.time_offset[name]
-    phase = np.median(np.interp(stamps, rig.trajectory_stamps, np.arange(len(rig.trajectory_stamps))) % 1.0)
-    print(f"{len(pairs.own)} pairs ({int(pairs.own.sum())} own); the camera's frames at phase {phase:.2f} of the trajectory's "
+    print(f"{len(pairs.own)} pairs ({int(pairs.own.sum())} own); the camera's frames at phase {phase(rig, name, truth.time_offset[name]):.2f} of the trajectory's "
           f"{1000 * np.median(np.diff(rig.trajectory_stamps)):.0f} ms samples")
     for step in np.arange(-0.06, 0.0601, 0.005):
         theta = at_truth.copy()
