@@ -802,3 +802,98 @@ def test_keypoints_found_at_half_resolution_are_given_in_the_full_images_pixels(
         keys = camera_map.sift_frames(None, [frame], 100, downscale)[0][0]
         nearest = np.linalg.norm(keys[None] - centres[:, None], axis=2).min(axis=1)
         assert np.all(nearest < 0.06), (downscale, nearest)
+
+
+def test_the_confirmed_feature_map_keeps_a_point_only_where_a_third_frame_sees_it_there(rig_folder, monkeypatch):
+    """A point moving along the baselines of the reference camera's frames (a car driving beside it) triangulates in
+    every pair of them and reprojects there within a pixel, each pair at another depth: the confirmed map
+    (``FeatureMapConfig.confirmed``, the map part of the cameras' sigma) leaves it out, since the point of one pair must
+    project onto the keypoint matched in a third frame; static points, seen in three frames or more, stay where they are
+    (keypoints given exactly; one-hot descriptors so every match is right)."""
+    import cv2
+
+    from moisst_ns.stages.camera import camera_map
+    from moisst_ns.stages.camera.camera_map import FeatureMapConfig
+
+    rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
+    name = rig.reference_sensor
+    frames = sorted(rig.frames_of(name), key=lambda f: f.timestamp)
+    stamps = torch.tensor([f.timestamp for f in frames], dtype=torch.float64) - float(rig.trajectory_stamps[0])
+    poses = ReferenceTrajectory.of(rig)(stamps).numpy()
+    model = PinholeModel.of(rig.sensors[name].intrinsics)
+    w, h = int(rig.sensors[name].intrinsics["w"]), int(rig.sensors[name].intrinsics["h"])
+    rng = np.random.default_rng(0)
+    ahead = poses[10, :3, 3] + 8.0 * poses[10, :3, 2]  # static points around what the middle frame looks at
+    static = ahead + rng.uniform(-3.0, 3.0, (60, 3)) * [1.0, 0.4, 1.0]
+    a, b, c = 8, 9, 10
+    centre = poses[:, :3, 3]
+    start = centre[a] + 6.0 * poses[a, :3, 2] + 0.8 * poses[a, :3, 0]
+    along = lambda k, m: start + m * (centre[k] - centre[a]) / np.linalg.norm(centre[k] - centre[a])
+    mover = {a: start, b: along(b, 0.4), c: along(c, -0.4)}
+
+    def pixels(points, k):
+        cam = (points - poses[k][:3, 3]) @ poses[k][:3, :3]
+        uv, z = project(model, torch.from_numpy(cam))
+        uv, z = uv.numpy(), z.numpy()
+        return uv, (z > 0.5) & (uv[:, 0] > 1) & (uv[:, 0] < w - 1) & (uv[:, 1] > 1) & (uv[:, 1] < h - 1)
+
+    def fake_sift(rig_, frames_, features, downscale=1):
+        keys, descs = [], []
+        for k in range(len(frames_)):
+            points = np.vstack([static, mover.get(k, np.full(3, np.nan))[None]])
+            uv, seen = pixels(np.nan_to_num(points), k)
+            seen[-1] &= k in mover
+            keys.append(uv[seen] - 0.5)
+            descs.append(np.eye(128, dtype=np.float32)[np.flatnonzero(seen)])
+        return keys, descs
+
+    # the premise: the mover's pair (a, b) triangulates and reprojects within a pixel in both
+    K = camera_map.camera_matrix(rig.sensors[name].intrinsics)
+    norm = [cv2.undistortPoints((pixels(mover[k][None], k)[0] - 0.5).reshape(-1, 1, 2), K, None).reshape(-1, 2) for k in (a, b)]
+    hom = cv2.triangulatePoints(np.linalg.inv(poses[a])[:3], np.linalg.inv(poses[b])[:3], norm[0].T, norm[1].T)
+    point = (hom[:3] / hom[3]).T
+    for k in (a, b):
+        np.testing.assert_allclose(pixels(point, k)[0], pixels(mover[k][None], k)[0], atol=0.1)
+    assert np.linalg.norm(point - start) > 0.5  # at another depth than the mover's
+
+    monkeypatch.setattr(camera_map, "sift_frames", fake_sift)
+    world = feature_map(rig, truth, FeatureMapConfig(patch_points=0, voxel=0.01, confirmed=True), log=lambda s: None)
+    nearest = np.linalg.norm(world[:, None] - static[None], axis=2).min(axis=1)
+    assert nearest.max() < 0.02, nearest.max()  # nothing of the mover
+    thrice = sum(int((np.array([pixels(static, k)[1] for k in range(len(frames))]).sum(axis=0) >= 3)[i]) for i in range(len(static)))
+    assert len(world) >= 0.9 * thrice, (len(world), thrice)
+
+
+def test_the_map_part_is_how_far_the_confirmed_features_move_each_camera_and_sigma_covers_it(rig_folder, monkeypatch):
+    """``map_part`` fits every camera again on the confirmed features (``FeatureMapConfig.confirmed``) and takes each
+    parameter's move as its sigma's map part: ``sigma_map`` the moves in the solver's order, ``sigma`` at least them
+    (exact values); the estimate stays; a camera whose refit fails gets no part (NaN, sigma unchanged)."""
+    from scipy.spatial.transform import Rotation
+
+    from moisst_ns.rig.trust import parameter_difference
+    from moisst_ns.stages.camera import camera_registration
+    from moisst_ns.stages.camera.camera_result import prior_kept
+    from moisst_ns.stages.trust.observability import JACOBIAN_ORDER
+
+    rig, truth = load_rig(rig_folder), load_calibration(rig_folder / "ground_truth.json")
+    results = {n: replace(prior_kept(n, truth, "", rig), kept_prior=False, sigma=[0.01] * 7) for n in ("cam_front_right", "cam_left")}
+    moved = np.array(results["cam_front_right"].estimate)
+    moved[:3, :3] = Rotation.from_rotvec([0.0, 0.002, 0.0]).as_matrix() @ moved[:3, :3]
+    moved[:3, 3] += [0.03, 0.0, -0.005]
+    seen = {}
+
+    def refit(rig_, world, calibration, config, source, problems, results_, reference, own):
+        seen.update(world=world, source=source)
+        return {"cam_front_right": (moved, results_["cam_front_right"].time_offset + 0.004), "cam_left": None}
+
+    monkeypatch.setattr(camera_registration, "_fit_again", refit)
+    monkeypatch.setattr(camera_registration, "feature_map", lambda rig_, calibration, config, log: np.full((60, 3), float(config.confirmed)))
+    out = camera_registration.map_part(rig, truth, CameraRegistrationConfig(), {}, results, None, lambda s: None)
+    assert seen["source"] == "features" and np.all(seen["world"] == 1.0)  # the confirmed map
+    r = results["cam_front_right"]
+    expect = np.abs(parameter_difference(r.estimate, r.time_offset, moved, r.time_offset + 0.004))
+    part = np.array(out["cam_front_right"].sigma_map)
+    np.testing.assert_allclose(part[list(JACOBIAN_ORDER)], expect)
+    np.testing.assert_allclose(out["cam_front_right"].sigma, np.fmax(0.01, part))
+    assert expect.max() == pytest.approx(0.03) and np.testing.assert_array_equal(out["cam_front_right"].estimate, r.estimate) is None
+    assert out["cam_left"].sigma == [0.01] * 7 and np.isnan(out["cam_left"].sigma_map).all()

@@ -3,8 +3,10 @@
 The reference camera's poses are the reference trajectory (eq. 1-2 with the identity extrinsic and no offset), so
 features matched between two of its frames (SIFT, Lowe's ratio test, ``cv2``) triangulate to metric world points
 (``cv2.triangulatePoints`` on undistorted, normalised coordinates). A point is kept when it lies in front of both
-frames, reprojects within ``max_reprojection_px`` in both and is seen under at least ``min_parallax_deg`` (depth
-from small parallax is noise). ``camera_registration`` then registers the other cameras against these points as
+frames, reprojects within ``max_reprojection_px`` in both, and is seen under at least ``min_parallax_deg`` (depth
+from small parallax is noise); with ``confirmed`` it must also land within ``max_reprojection_px`` of the keypoint
+matched in a third frame (a car driving along the frames' baselines triangulates in every pair of them, each at another
+depth: ``camera_registration.map_part``). ``camera_registration`` then registers the other cameras against these points as
 it does against a LiDAR map. A feature sits at the centre of a blob, where the image gradient vanishes and a
 photometric residual is flat to first order; each point therefore brings a ring of points around it
 (``patch_points``: DSO's residual pattern, Engel et al. 2017, on the blob's flanks where the gradient is). Measured on
@@ -42,6 +44,9 @@ class FeatureMapConfig:
     """Least angle between the two viewing rays of a triangulated point, degrees."""
     max_reprojection_px: float = 1.0
     """Largest reprojection error in either frame, pixels."""
+    confirmed: bool = False
+    """Keep only the points that also project within ``max_reprojection_px`` of the keypoint matched in a third frame
+    (``camera_registration.map_part``)."""
     voxel: float = 0.05
     """One point per voxel of this size, metres."""
     patch_points: int = 8
@@ -186,8 +191,17 @@ def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, lo
     K, dist = camera_matrix(spec.intrinsics), distortion(spec.intrinsics)
     model = PinholeModel.of(spec.intrinsics)
     keys, descs = sift_frames(rig, frames, config.features)
+
+    def reprojects(world: np.ndarray, f: int, i: np.ndarray) -> np.ndarray:
+        """Which of ``world`` lie in front of frame ``f`` and project within ``max_reprojection_px`` of its keypoints ``i``."""
+        pose = pose_at(f, i)
+        cam = np.einsum("nji,nj->ni", pose[:, :3, :3], np.nan_to_num(world) - pose[:, :3, 3])
+        uv, z = project(model, torch.from_numpy(cam))
+        return (z.numpy() > 0.5) & (np.linalg.norm(uv.numpy() - (keys[f][i] + 0.5), axis=1) < config.max_reprojection_px)
+
     points = []
     for a in range(len(frames)):
+        pairs = {}  # partner frame b -> (ia, ib, world, ok): frame a's keypoints ia matched in b, triangulated
         for b in range(a + 1, min(a + 1 + config.max_gap, len(frames))):
             ia, ib = ratio_matches(descs[a], descs[b], config.ratio)
             if len(ia) < 8:
@@ -202,17 +216,19 @@ def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, lo
                 world = (hom[:3] / np.where(np.abs(hom[3]) > 1e-12, hom[3], np.nan)).T
             ok = np.all(np.isfinite(world), axis=1)
             for f, i in ((a, ia), (b, ib)):
-                if readout:
-                    pose = pose_at(f, i)
-                    cam = np.einsum("nji,nj->ni", pose[:, :3, :3], np.nan_to_num(world) - pose[:, :3, 3])
-                else:
-                    cam = (world - poses[f][:3, 3]) @ poses[f][:3, :3]
-                uv, z = project(model, torch.from_numpy(np.nan_to_num(cam)))
-                ok &= (z.numpy() > 0.5) & (np.linalg.norm(uv.numpy() - (keys[f][i] + 0.5), axis=1) < config.max_reprojection_px)
+                ok &= reprojects(world, f, i)
             rays = [world - pose_at(f, i)[:, :3, 3] for f, i in ((a, ia), (b, ib))]
             cos = np.sum(rays[0] * rays[1], axis=1) / np.maximum(np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1), 1e-12)
             ok &= np.degrees(np.arccos(np.clip(cos, -1, 1))) >= config.min_parallax_deg
-            points.append(world[ok])
+            pairs[b] = (ia, ib, world, ok)
+        for b, (ia, ib, world, ok) in pairs.items():  # with ``confirmed``, a third frame of the keypoint must see the point there
+            confirmed = np.full(len(ia), not config.confirmed)
+            for c, (ja, jc, _, _) in pairs.items() if config.confirmed else ():
+                if c == b:
+                    continue
+                _, here, there = np.intersect1d(ia, ja, return_indices=True)
+                confirmed[here[reprojects(world[here], c, jc[there])]] = True
+            points.append(world[ok & confirmed])
     if not points or sum(len(p) for p in points) < 50:
         raise NoMapError(f"{rig.root / 'rig.json'}: frames: fewer than 50 feature points of {name} triangulate (too little texture or motion)")
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points)))

@@ -46,14 +46,58 @@ def _world(rig: Rig, calibration: Calibration, config: CameraRegistrationConfig,
     return feature_map(rig, calibration, FeatureMapConfig(voxel=config.map_voxel), log)
 
 
+def _fit_again(rig: Rig, world: Optional[np.ndarray], calibration: Calibration, config: CameraRegistrationConfig, source: str,
+               problems: Dict[str, Registration], results: Dict[str, CameraResult], reference: Optional[CameraFrames],
+               own: Dict[str, OwnMatches]) -> Dict[str, Optional[Tuple[np.ndarray, float]]]:
+    """Every camera of ``problems`` fitted again from its estimate on ``rig`` and ``world`` (None: the map ``source``
+    rebuilt on ``rig``): at the finest level, as ``_descend`` does there, or by its own motion where it was placed so
+    (``own_motion.fit_own_motion`` at the fine radius, ``own_tracks.fit_own_tracks``'s track solves); None where it
+    cannot be."""
+    thetas = {n: r.correction if n not in own else  # PARAMETERS order -> the solver's
+              np.asarray(parameter_difference(r.prior, r.prior_offset, r.estimate, r.time_offset))[list(JACOBIAN_ORDER)] for n, r in results.items()}
+    try:
+        world = _world(rig, calibration, config, source, lambda _: None) if world is None else world
+    except NoMapError:
+        return {n: None for n in problems}
+    traj, poses = ReferenceTrajectory.of(rig), {}
+    surface = MapSurface.of(world, OWN.normal_radius) if own and source == "lidar" else None
+    for name, problem in problems.items():
+        if name in own:  # refitted by its own motion, from its estimate
+            prior = (results[name].prior, results[name].prior_offset)
+            again = (fit_own_motion(traj, own[name], surface, *prior, OWN, lambda _: None, name, thetas[name]) if surface is not None else
+                     fit_own_tracks(traj, own[name], float(rig.sensors[name].intrinsics["fl_x"]), *prior, TRACKS, lambda _: None, name, thetas[name]))
+            poses[name] = None if again is None else _corrected(results[name].prior, results[name].prior_offset, again.theta)
+            continue
+        settings = replace(config, estimate_readout=len(thetas[name]) > 7)  # as the result was fitted (readout refit: without)
+        again = Registration(traj, world, problem.camera, reference, calibration, settings)
+        try:
+            theta = _descend(again, settings, lambda _: None, thetas[name], [min(problem.camera.levels)])[0]
+        except NoOverlapError:
+            poses[name] = None
+            continue
+        poses[name] = _corrected(problem.model.prior.numpy(), problem.model.prior_offset, theta)
+    return poses
+
+
+def _with_part(results: Dict[str, CameraResult], moved: Dict[str, np.ndarray], field: str, what: str, log: Callable[[str], None]) -> Dict[str, CameraResult]:
+    """``results`` with ``moved`` (per camera, ``PARAMETERS`` order) as their sigma's part ``field`` (solver order):
+    ``sigma`` at least it, per parameter."""
+    out = {}
+    for name, r in results.items():
+        part = np.zeros(7)
+        part[list(JACOBIAN_ORDER)] = moved[name]  # PARAMETERS order -> the solver's
+        log(f"[camera-registration] {name}: {what} move it by " + ", ".join(f"{p} {v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, moved[name], UNITS)))
+        out[name] = replace(r, sigma=np.fmax(np.asarray(r.sigma, dtype=np.float64), part).tolist(), **{field: part.tolist()})
+    return out
+
+
 def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrationConfig, source: str, problems: Dict[str, Registration],
                     results: Dict[str, CameraResult], reference: Optional[CameraFrames], log: Callable[[str], None],
                     own: Optional[Dict[str, OwnMatches]] = None) -> Dict[str, CameraResult]:
     """``results`` with the trajectory part of their sigma: what the errors rig.json states of the trajectory put into
     each camera (``trajectory_noise.trajectory_spread``: ``config.trajectory_draws`` draws; on each the map is rebuilt and
-    every camera fitted again from its estimate: at the finest level, as ``_descend`` does there, or by its own motion
-    where it was placed so: ``own_motion.fit_own_motion`` at the fine radius, ``own_tracks.fit_own_tracks``'s track solves). The estimates do not
-    change. The map (LiDAR scans or triangulated features) and a camera's own partners are both placed by the trajectory,
+    every camera fitted again from its estimate, ``_fit_again``). The estimates do not change. The map (LiDAR scans or
+    triangulated features) and a camera's own partners are both placed by the trajectory,
     so a noisy one moves the estimate by more than any part measured on the given trajectory can see (realistic rigs
     without a LiDAR, cam_front_right: plaza seed 2's x 2.6 sigma and street seed 3's pitch 3.0 sigma off without this
     part, within 1.4 sigma with it: docs/uncertainty.md).
@@ -73,45 +117,33 @@ def trajectory_part(rig: Rig, calibration: Calibration, config: CameraRegistrati
         The results with ``sigma`` at least the part, per parameter, and ``sigma_trajectory`` (solver order).
     """
     begun = time.perf_counter()
-    finest = {n: min(p.camera.levels) for n, p in problems.items()}
-    own = own or {}
-    thetas = {n: r.correction if n not in own else  # PARAMETERS order -> the solver's
-              np.asarray(parameter_difference(r.prior, r.prior_offset, r.estimate, r.time_offset))[list(JACOBIAN_ORDER)] for n, r in results.items()}
-
-    def fit(drawn: Rig) -> Dict[str, Optional[Tuple[np.ndarray, float]]]:
-        try:
-            world = _world(drawn, calibration, config, source, lambda _: None)
-        except NoMapError:
-            return {n: None for n in problems}
-        traj, poses = ReferenceTrajectory.of(drawn), {}
-        surface = MapSurface.of(world, OWN.normal_radius) if own and source == "lidar" else None
-        for name, problem in problems.items():
-            if name in own:  # refitted by its own motion, from its estimate
-                prior = (results[name].prior, results[name].prior_offset)
-                again = (fit_own_motion(traj, own[name], surface, *prior, OWN, lambda _: None, name, thetas[name]) if surface is not None else
-                         fit_own_tracks(traj, own[name], float(rig.sensors[name].intrinsics["fl_x"]), *prior, TRACKS, lambda _: None, name, thetas[name]))
-                poses[name] = None if again is None else _corrected(results[name].prior, results[name].prior_offset, again.theta)
-                continue
-            settings = replace(config, estimate_readout=len(thetas[name]) > 7)  # as the result was fitted (readout refit: without)
-            again = Registration(traj, world, problem.camera, reference, calibration, settings)
-            try:
-                theta = _descend(again, settings, lambda _: None, thetas[name], [finest[name]])[0]
-            except NoOverlapError:
-                poses[name] = None
-                continue
-            poses[name] = _corrected(problem.model.prior.numpy(), problem.model.prior_offset, theta)
-        return poses
-
+    fit = lambda drawn: _fit_again(drawn, None, calibration, config, source, problems, results, reference, own or {})
     spread = trajectory_spread(fit, rig, {n: (r.estimate, r.time_offset) for n, r in results.items()}, config.trajectory_draws)
-    out = {}
-    for name, r in results.items():
-        part = np.zeros(7)
-        part[list(JACOBIAN_ORDER)] = spread[name]  # PARAMETERS order -> the solver's
-        sigma = np.fmax(np.asarray(r.sigma, dtype=np.float64), part)
-        log(f"[camera-registration] {name}: the trajectory's stated errors ({config.trajectory_draws} draws, {time.perf_counter() - begun:.0f} s) move it by "
-            + ", ".join(f"{p} {v * u:.3g} {n}" for p, v, (u, n) in zip(PARAMETERS, spread[name], UNITS)) + " RMS")
-        out[name] = replace(r, sigma=sigma.tolist(), sigma_trajectory=part.tolist())
-    return out
+    return _with_part(results, spread, "sigma_trajectory", f"the trajectory's stated errors ({config.trajectory_draws} draws, "
+                      f"{time.perf_counter() - begun:.0f} s, RMS)", log)
+
+
+def map_part(rig: Rig, calibration: Calibration, config: CameraRegistrationConfig, problems: Dict[str, Registration],
+             results: Dict[str, CameraResult], reference: Optional[CameraFrames], log: Callable[[str], None]) -> Dict[str, CameraResult]:
+    """``results`` with the map part of their sigma where the map is the reference camera's features: each camera
+    fitted again from its estimate (``_fit_again``) on the features a third frame confirms (``FeatureMapConfig.confirmed``).
+    A car driving beside the reference camera triangulates in its pairs of frames at a wrong depth and pulls the cameras
+    registered on it; the points it leaves the map with are the ones a third frame does not see where their pair put
+    them. The estimates do not change (the confirmed map holds fewer static points too: docs/uncertainty.md).
+
+    Returns:
+        The results with ``sigma`` at least the part, per parameter, and ``sigma_map`` (solver order).
+    """
+    begun = time.perf_counter()
+    try:
+        world = feature_map(rig, calibration, FeatureMapConfig(voxel=config.map_voxel, confirmed=True), lambda _: None)
+    except NoMapError as err:
+        log(f"[camera-registration] the confirmed features: {err}; no map part")
+        return results
+    fitted = _fit_again(rig, world, calibration, config, "features", problems, results, reference, {})
+    moved = {n: np.full(7, np.nan) if fitted[n] is None else np.abs(parameter_difference(r.estimate, r.time_offset, *fitted[n]))
+             for n, r in results.items()}
+    return _with_part(results, moved, "sigma_map", f"the map of confirmed features ({time.perf_counter() - begun:.0f} s)", log)
 
 
 def camera_sensors(rig: Rig) -> List[str]:
@@ -223,6 +255,9 @@ def register_cameras(rig: Rig, calibration: Calibration, config: CameraRegistrat
         r = results[name]
         out.T_ref_sensor[name], out.time_offset[name] = r.estimate, r.time_offset
     accepted = {n: p for n, p in problems.items() if not results[n].kept_prior}
+    placed = {n: p for n, p in accepted.items() if n not in own}  # on the map
+    if source == "features" and placed:
+        results.update(map_part(rig, calibration, config, placed, {n: results[n] for n in placed}, reference, log))
     if config.trajectory_draws > 0 and rig.trajectory_accuracy.stated() and accepted:
         results.update(trajectory_part(rig, calibration, config, source, accepted, {n: results[n] for n in accepted}, reference, log,
                                        {n: m for n, m in own.items() if n in accepted}))

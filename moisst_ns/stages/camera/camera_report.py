@@ -27,7 +27,8 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
     """The JSON-ready record of a stage run (``camera_registration.json``).
 
     ``sigma`` (and its parts ``sigma_formal``, ``sigma_split_half``, ``sigma_resolution``, ``sigma_convergence``, and
-    ``sigma_trajectory`` where rig.json states the trajectory's errors) is in the trust order (``x, y, z, roll, pitch,
+    ``sigma_trajectory`` where rig.json states the trajectory's errors, ``sigma_map`` where the map is the reference
+    camera's features) is in the trust order (``x, y, z, roll, pitch,
     yaw, time_offset``; m, rad, s); a parameter whose sigma exceeds its typical prior error (10 cm, 1 deg, 10 ms), or
     that its evidence cannot fix on this drive (``CameraResult.weak``), is listed in ``weak``; ``blind`` lists those its view does not tell a typical prior error apart on
     (``typical_error_significance`` under ``min_significance``): such a camera keeps its prior, and ``moisst-calibrate``
@@ -42,7 +43,7 @@ def stage_summary(result: CameraStageResult, config: CameraRegistrationConfig, s
         sigma = [float(r.sigma[j]) for j in JACOBIAN_ORDER]
         parts = {f"sigma_{k}": [finite_or_none(v[j]) for j in JACOBIAN_ORDER] for k, v in (("formal", r.sigma_formal), ("split_half", r.sigma_split),
                                                                                    ("resolution", r.sigma_resolution), ("convergence", r.sigma_convergence),
-                                                                                   ("trajectory", r.sigma_trajectory)) if v}
+                                                                                   ("trajectory", r.sigma_trajectory), ("map", r.sigma_map)) if v}
         entry = {"T_ref_sensor": np.asarray(r.estimate).tolist(), "time_offset": r.time_offset, "prior_T_ref_sensor": np.asarray(r.prior).tolist(),
                  "prior_time_offset": r.prior_offset, "sigma": [finite_or_none(s) for s in sigma],
                  "weak": [p for p, s, step in zip(PARAMETERS, sigma, TEST_STEPS) if not s <= step or p in r.weak],

@@ -29,8 +29,8 @@ class CameraResult:
     """Standard deviations of the 7 corrections (rad, rad, rad, m, m, m, s): the largest of the formal one (max of
     classical and frame-clustered, ``uncertainty_math.least_squares_sigma``, from the finest level's last solve; inf
     where unconstrained), the split-half spread (``split_half_spread``), the resolution spread
-    (``resolution_spread``), the convergence tail (``convergence_tail``) and, where rig.json states the trajectory's
-    errors, the trajectory part (``trajectory_part``)."""
+    (``resolution_spread``), the convergence tail (``convergence_tail``), where rig.json states the trajectory's
+    errors the trajectory part (``trajectory_part``) and on the reference camera's features the map part (``map_part``)."""
     cost_prior: float
     """Held-back mean Huber cost at the prior (fresh samples at the finest level: ``held_back_check``)."""
     cost_estimate: float
@@ -78,6 +78,9 @@ class CameraResult:
     sigma_trajectory: List[float] = field(default_factory=list)
     """The trajectory part of ``sigma`` (``trajectory_part``; empty where rig.json states no trajectory errors or the
     camera kept its prior)."""
+    sigma_map: List[float] = field(default_factory=list)
+    """The map part of ``sigma`` (``camera_registration.map_part``; empty where the map is a LiDAR's or the camera was
+    placed by its own motion), solver order."""
     weak: List[str] = field(default_factory=list)
     """Parameters (trust names, ``PARAMETERS``) its evidence cannot fix on this drive whatever its sigma says: for a
     camera placed by its own tracks, those the drive's motion does not separate (``own_tracks.weak_by_motion``)."""
