@@ -221,14 +221,15 @@ def feature_map(rig: Rig, calibration: Calibration, config: FeatureMapConfig, lo
             cos = np.sum(rays[0] * rays[1], axis=1) / np.maximum(np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1), 1e-12)
             ok &= np.degrees(np.arccos(np.clip(cos, -1, 1))) >= config.min_parallax_deg
             pairs[b] = (ia, ib, world, ok)
-        for b, (ia, ib, world, ok) in pairs.items():  # with ``confirmed``, a third frame of the keypoint must see the point there
-            confirmed = np.full(len(ia), not config.confirmed)
-            for c, (ja, jc, _, _) in pairs.items() if config.confirmed else ():
-                if c == b:
-                    continue
-                _, here, there = np.intersect1d(ia, ja, return_indices=True)
-                confirmed[here[reprojects(world[here], c, jc[there])]] = True
-            points.append(world[ok & confirmed])
+        for b, (ia, _, world, ok) in pairs.items():
+            if config.confirmed:  # a third frame of the keypoint must see the point there too
+                seen = np.zeros(len(ia), dtype=bool)
+                for c, (ja, jc, _, _) in pairs.items():
+                    if c != b:
+                        _, here, there = np.intersect1d(ia, ja, return_indices=True)
+                        seen[here[reprojects(world[here], c, jc[there])]] = True
+                ok = ok & seen
+            points.append(world[ok])
     if not points or sum(len(p) for p in points) < 50:
         raise NoMapError(f"{rig.root / 'rig.json'}: frames: fewer than 50 feature points of {name} triangulate (too little texture or motion)")
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points)))
